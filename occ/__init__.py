@@ -1,0 +1,7 @@
+"""The link format shared by transmitter and receiver: pure numpy, no I/O, no web.
+
+- ``marker``: geometry of the dynamic marker, rendering, marker-frame coordinates;
+- ``profiles``: the link profiles (``paper``, ``robust``, ``fast``);
+- ``stream``: ``StreamEncoder`` (frame k of a message) and ``StreamDecoder`` (messages back);
+- ``report``: the JSON schema the receiver sends to the server.
+"""
