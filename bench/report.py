@@ -34,14 +34,18 @@ def machine() -> str:
     )
 
 
-def write_section(name: str, title: str, command: str, body: str, path: Path = BENCHMARKS_MD) -> None:
+def write_section(
+    name: str, title: str, command: str, body: str, path: Path = BENCHMARKS_MD
+) -> None:
     """Replace (or append) the section ``name`` with ``body`` (Markdown)."""
     begin, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
-    section = (
-        f"{begin}\n## {title}\n\n`{command}`  \nMachine: {machine()}\n\n{body.strip()}\n{end}"
-    )
+    section = f"{begin}\n## {title}\n\n`{command}`  \nMachine: {machine()}\n\n{body.strip()}\n{end}"
     text = path.read_text() if path.exists() else HEADER
     pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
-    text = pattern.sub(lambda _: section, text) if pattern.search(text) else f"{text.rstrip()}\n\n{section}\n"
+    text = (
+        pattern.sub(lambda _: section, text)
+        if pattern.search(text)
+        else f"{text.rstrip()}\n\n{section}\n"
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)

@@ -93,7 +93,7 @@ class MarkerGeometry:
         return m
 
     def data_frame(self, payload: np.ndarray, locator: bool = True) -> np.ndarray:
-        """Full (side, side) cell matrix of a data frame showing ``payload`` (N x N, truthy = white)."""
+        """Full (side, side) cell matrix of a data frame showing ``payload`` (N x N, 1 = white)."""
         payload = np.asarray(payload)
         if payload.shape != (self.cells, self.cells):
             raise ValueError(f"payload must be {self.cells}x{self.cells}, got {payload.shape}")
@@ -115,7 +115,7 @@ class MarkerGeometry:
         return size_m / self.tracked_side
 
     def cell_to_world(self, size_m: float, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-        """Marker-frame points (..., 3) of cell-grid coordinates (column, row) of the full matrix."""
+        """Marker-frame points (..., 3) of cell-grid coordinates (column, row), full matrix."""
         c = self.cell_size_m(size_m)
         col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
         return np.stack([(col - self.ring) * c, (row - self.ring) * c, np.zeros_like(col)], -1)
@@ -134,7 +134,7 @@ class MarkerGeometry:
         return out
 
     def locator_corners(self, size_m: float) -> np.ndarray:
-        """(4, 3) outer corners of the inner locator ring: TL, TR, BR, BL in canonical orientation."""
+        """(4, 3) outer corners of the inner locator ring: TL, TR, BR, BL (canonical)."""
         c = self.cell_size_m(size_m)
         lo = 2 * self.ring * c
         hi = lo + self.locator_side * c

@@ -24,7 +24,9 @@ class CameraModel:
         K = np.asarray(self.K, dtype=np.float64)
         dist = np.zeros(5) if self.dist is None else np.asarray(self.dist, dtype=np.float64).ravel()
         if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ValueError(f"K must be a 3x3 intrinsic matrix with positive focal lengths, got {K}")
+            raise ValueError(
+                f"K must be a 3x3 intrinsic matrix with positive focal lengths, got {K}"
+            )
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"resolution must be positive, got {self.width}x{self.height}")
         if dist.size not in (4, 5, 8):

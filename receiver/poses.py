@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4x4 (or (n,4,4)) homogeneous transform from rotation matrices and translations."""
     R, t = np.asarray(R, float), np.asarray(t, float)
-    T = np.zeros(R.shape[:-2] + (4, 4))
+    T = np.zeros((*R.shape[:-2], 4, 4))
     T[..., :3, :3] = R
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
@@ -28,14 +28,14 @@ def pose_to_tum_row(T: np.ndarray) -> np.ndarray:
     """(..., 7) tx ty tz qx qy qz qw of transforms (..., 4, 4)."""
     flat = T.reshape(-1, 4, 4)
     q = Rotation.from_matrix(flat[:, :3, :3]).as_quat()  # x, y, z, w
-    return np.concatenate([flat[:, :3, 3], q], 1).reshape(T.shape[:-2] + (7,))
+    return np.concatenate([flat[:, :3, 3], q], 1).reshape((*T.shape[:-2], 7))
 
 
 def tum_row_to_pose(rows: np.ndarray) -> np.ndarray:
     rows = np.asarray(rows, float)
     flat = rows.reshape(-1, 7)
     T = make_pose(Rotation.from_quat(flat[:, 3:]).as_matrix(), flat[:, :3])
-    return T.reshape(rows.shape[:-1] + (4, 4))
+    return T.reshape((*rows.shape[:-1], 4, 4))
 
 
 def format_seconds(t_us: int) -> str:
@@ -67,7 +67,8 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         parts = line.split()
         if len(parts) != 8:
             raise TrajectoryFileError(
-                f"{path}:{lineno}: a TUM row has 8 numbers (t tx ty tz qx qy qz qw), got {len(parts)}"
+                f"{path}:{lineno}: a TUM row has 8 numbers (t tx ty tz qx qy qz qw), "
+                f"got {len(parts)}"
             )
         try:
             t_us.append(int(Decimal(parts[0]).scaleb(6).to_integral_value()))
