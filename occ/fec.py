@@ -1,0 +1,115 @@
+"""Reed-Solomon over GF(256), as ``reedsolo`` defines it (primitive polynomial 0x11d, generator 2,
+first consecutive root 0), with fast paths.
+
+``reedsolo`` is pure Python (its compiled ``creedsolo`` is not in the wheel), so encoding a frame
+with it costs milliseconds. RS encoding and the syndromes are linear maps over GF(256), so we
+derive their matrices once from ``reedsolo`` itself and apply them to whole batches of codewords
+with table look-ups. Only codewords whose syndromes are non-zero (or that carry erasures) go to
+the corrector, ``occ.rs_kernel`` (reedsolo's algorithm compiled with numba).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+import reedsolo
+
+from occ.rs_kernel import GF_EXP, GF_LOG, correct_rows
+
+MAX_CODEWORD = 255
+
+
+def _gf_mul_table() -> np.ndarray:
+    table = GF_EXP[GF_LOG[:, None] + GF_LOG[None, :]].astype(np.uint8)
+    table[0, :] = table[:, 0] = 0
+    return table
+
+
+GF_MUL = _gf_mul_table()
+"""(256, 256) uint8: ``GF_MUL[a, b]`` is the GF(256) product of a and b."""
+
+
+def _gf_matmul(rows: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """(m, a) x (a, b) -> (m, b) over GF(256): products by look-up, sums by XOR."""
+    return np.bitwise_xor.reduce(GF_MUL[rows[:, :, None], matrix[None, :, :]], axis=1)
+
+
+@cache
+def _parity_matrix(k: int, nsym: int) -> np.ndarray:
+    """(k, nsym): row i is the parity of the unit message e_i (encoding is linear)."""
+    out = np.zeros((k, nsym), dtype=np.uint8)
+    for i in range(k):
+        unit = bytearray(k)
+        unit[i] = 1
+        out[i] = reedsolo.rs_encode_msg(unit, nsym)[k:]
+    return out
+
+
+@cache
+def _syndrome_matrix(n: int, nsym: int) -> np.ndarray:
+    """(n, nsym): row i is the syndrome vector of the unit codeword e_i."""
+    out = np.zeros((n, nsym), dtype=np.uint8)
+    for i in range(n):
+        unit = bytearray(n)
+        unit[i] = 1
+        out[i] = reedsolo.rs_calc_syndromes(unit, nsym)[1:]  # reedsolo prepends a 0
+    return out
+
+
+@dataclass(frozen=True)
+class ReedSolomon:
+    """A (possibly shortened) RS(n, k) code: ``k`` data bytes then ``n - k`` parity bytes.
+
+    It corrects ``e`` errors and ``f`` erasures whenever ``2 e + f <= n - k``.
+    """
+
+    n: int
+    k: int
+
+    def __post_init__(self) -> None:
+        if not 0 < self.k < self.n <= MAX_CODEWORD:
+            raise ValueError(f"need 0 < k < n <= {MAX_CODEWORD}, got RS({self.n}, {self.k})")
+
+    @property
+    def nsym(self) -> int:
+        return self.n - self.k
+
+    def encode(self, data: np.ndarray) -> np.ndarray:
+        """(m, k) uint8 messages -> (m, n) systematic codewords."""
+        data = np.asarray(data, dtype=np.uint8).reshape(-1, self.k)
+        parity = _gf_matmul(data, _parity_matrix(self.k, self.nsym))
+        return np.concatenate([data, parity], axis=1)
+
+    def syndromes_clean(self, codewords: np.ndarray) -> np.ndarray:
+        """(m, n) codewords -> (m,) bool: True where all syndromes vanish (a valid codeword)."""
+        codewords = np.asarray(codewords, dtype=np.uint8).reshape(-1, self.n)
+        return ~_gf_matmul(codewords, _syndrome_matrix(self.n, self.nsym)).any(axis=1)
+
+    def decode(
+        self, codewords: np.ndarray, erasures: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Correct (m, n) codewords; ``erasures`` is an optional (m, n) bool mask of bytes known
+        to be unreliable. Returns the (m, k) data and an (m,) bool mask of codewords that
+        decoded; the data of the others is left as received."""
+        codewords = np.array(codewords, dtype=np.uint8).reshape(-1, self.n)
+        if erasures is None:
+            erasures = np.zeros(codewords.shape, dtype=bool)
+        erasures = np.asarray(erasures, dtype=bool).reshape(codewords.shape)
+        ok = self.syndromes_clean(codewords) & ~erasures.any(axis=1)
+        if not ok.all():
+            ok |= correct_rows(codewords, erasures, ~ok, self.nsym)
+        return codewords[:, : self.k], ok
+
+
+# The paper's footnote: the RS code chosen for each payload side N.
+PAPER_RS_K = {16: 251, 32: 247, 48: 239, 64: 223, 80: 159, 96: 127}
+
+
+def paper_rs(cells: int) -> ReedSolomon:
+    """The paper's RS(255, k) for payload side ``cells``. Sides the paper did not test use the
+    code of the next larger tested side (so protection never drops as N grows), and sides above
+    96 use the N = 96 code."""
+    side = min((s for s in PAPER_RS_K if s >= cells), default=max(PAPER_RS_K))
+    return ReedSolomon(MAX_CODEWORD, PAPER_RS_K[side])

@@ -1,0 +1,57 @@
+"""Link profiles: how a message becomes the cells of successive display refreshes.
+
+- ``paper``: the paper bit for bit: the message Reed-Solomon coded as its footnote says, then raw
+  bits row-major, MSB first, 1 = white, zero-padded to whole frames; data frame then blank frame.
+  No header: the receiver must see the data frames in order (see ``occ.paper_codec``).
+- ``robust`` (default): every data frame is one fountain-code symbol with a header and a CRC,
+  Reed-Solomon coded and interleaved over the frame, whitened; data frame then blank frame.
+  A receiver can join at any time, lose or repeat frames, and still recover the message.
+- ``fast``: ``robust``'s frames sent differentially on every refresh: a cell toggles to send a 1,
+  so each refresh carries one symbol and there are no blank frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+PROFILE_NAMES = ("paper", "robust", "fast")
+DEFAULT_PROFILE = "robust"
+
+
+@dataclass(frozen=True)
+class LinkProfile:
+    name: str
+    data_every: int
+    """Display refreshes per data frame: 2 (data frame + blank frame) or 1 (``fast``)."""
+    framed: bool = True
+    """Frames carry a header, CRC and fountain symbol (``False``: the paper's raw bit stream)."""
+    parity_fraction: float = 0.25
+    """Share of each Reed-Solomon codeword spent on parity (framed profiles); 0.25 corrects
+    about 12% wrong bytes, i.e. ~1% independent bit errors, the paper's dynamic BER."""
+    erasure_below: float = 0.5
+    """A byte with any cell of confidence below this becomes an RS erasure."""
+    block_symbols: int = 1024
+    """Fountain source symbols per block: the unit of memory and of RaptorQ encoding."""
+    repair_ratio: float = 0.25
+    """Repair symbols sent per source symbol in each pass over a block."""
+    passes: int = 4
+    """Passes over every block (each with fresh repair symbols) before the stream repeats."""
+    key_every: int = 0
+    """``fast``: every ``key_every``-th refresh resets the differential state to a fixed key
+    pattern (it carries no symbol), so frame k costs at most ``key_every`` symbol encodings."""
+
+
+PROFILES = {
+    "paper": LinkProfile("paper", data_every=2, framed=False, parity_fraction=0.0),
+    "robust": LinkProfile("robust", data_every=2),
+    "fast": LinkProfile("fast", data_every=1, key_every=32),
+}
+
+
+def get_profile(name: str) -> LinkProfile:
+    try:
+        return PROFILES[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown link profile {name!r}; valid profiles: {', '.join(PROFILE_NAMES)}"
+        ) from None

@@ -1,0 +1,152 @@
+"""The JSON the receiver sends the server over its websocket, one report per message.
+
+The receiver opens with a ``Hello``; after it every message is one ``Report``, told apart by its
+``type`` field. Parse with ``parse_report(text)``; write with ``report.model_dump_json()``.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import hashlib
+from enum import StrEnum
+from typing import Annotated, Literal, Self
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
+
+from occ.stream import ReceivedMessage
+
+PROTOCOL_VERSION = 1
+
+Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+Count = Annotated[int, Field(ge=0)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class TrackingState(StrEnum):
+    """The receiver pipeline's state (the paper's idle / scanning / receiving, plus lost)."""
+
+    IDLE = "idle"
+    SCANNING = "scanning"
+    TRACKING = "tracking"
+    LOST = "lost"
+
+
+class Hello(_Model):
+    type: Literal["hello"] = "hello"
+    receiver_id: str = Field(min_length=1, max_length=128)
+    token: str | None = None
+    version: int = PROTOCOL_VERSION
+
+
+class PoseReport(_Model):
+    """``T_world_cam``: the camera's pose in the marker frame (metres)."""
+
+    type: Literal["pose"] = "pose"
+    t_us: int
+    position: tuple[float, float, float]
+    quaternion_xyzw: tuple[float, float, float, float]
+    state: TrackingState
+
+
+class FrameStats(_Model):
+    type: Literal["frame"] = "frame"
+    t_us: int
+    frame_index: Count
+    bits_read: Count
+    confidence_mean: Unit
+    ber: Unit | None = None
+    """Bit error rate before FEC, when the truth is known (simulator)."""
+    events_per_s: Annotated[float, Field(ge=0.0)]
+
+
+class MessageReport(_Model):
+    """A verified message; ``data_b64`` is checked against ``size`` and ``sha256`` on parsing."""
+
+    type: Literal["message"] = "message"
+    stream_id: Count
+    name: str
+    size: Count
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    data_b64: str
+    profile: str
+
+    @model_validator(mode="after")
+    def _data_matches(self) -> Self:
+        try:
+            data = base64.b64decode(self.data_b64, validate=True)
+        except binascii.Error as exc:
+            raise ValueError(f"data_b64 is not valid base64: {exc}") from None
+        if len(data) != self.size:
+            raise ValueError(f"data_b64 holds {len(data)} bytes but size says {self.size}")
+        if hashlib.sha256(data).hexdigest() != self.sha256:
+            raise ValueError("data_b64 does not match sha256")
+        return self
+
+    @property
+    def data(self) -> bytes:
+        return base64.b64decode(self.data_b64)
+
+    @classmethod
+    def of(cls, message: ReceivedMessage) -> MessageReport:
+        return cls(
+            stream_id=message.stream_id,
+            name=message.name,
+            size=len(message.data),
+            sha256=message.sha256,
+            data_b64=base64.b64encode(message.data).decode(),
+            profile=message.profile,
+        )
+
+
+class ProgressReport(_Model):
+    type: Literal["progress"] = "progress"
+    stream_id: Count
+    symbols_held: Count
+    symbols_needed: Count
+    name: str | None = None
+    size: Count | None = None
+
+
+class HealthReport(_Model):
+    type: Literal["health"] = "health"
+    cpu_load: Annotated[float, Field(ge=0.0)]
+    """Share of one core the receiver used (may exceed 1 with several threads)."""
+    events_per_s: Annotated[float, Field(ge=0.0)]
+    state: TrackingState
+
+
+class SurfaceReport(_Model):
+    """A thumbnail of the event time surface for the dashboard: ``width * height`` uint8 values,
+    row-major, base64 (255 = an event just now, fading to 0)."""
+
+    type: Literal["surface"] = "surface"
+    t_us: int
+    width: Annotated[int, Field(ge=1, le=256)]
+    height: Annotated[int, Field(ge=1, le=256)]
+    pixels_b64: str
+
+    @model_validator(mode="after")
+    def _size_matches(self) -> Self:
+        try:
+            size = len(base64.b64decode(self.pixels_b64, validate=True))
+        except binascii.Error as exc:
+            raise ValueError(f"pixels_b64 is not valid base64: {exc}") from None
+        if size != self.width * self.height:
+            raise ValueError(f"pixels_b64 holds {size} bytes, not {self.width}x{self.height}")
+        return self
+
+
+Report = Annotated[
+    PoseReport | FrameStats | MessageReport | ProgressReport | HealthReport | SurfaceReport,
+    Field(discriminator="type"),
+]
+_REPORT = TypeAdapter(Report)
+
+
+def parse_report(text: str | bytes) -> Report:
+    """One report from its JSON; raises ``pydantic.ValidationError`` saying what is wrong."""
+    return _REPORT.validate_json(text)

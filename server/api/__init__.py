@@ -1,0 +1,9 @@
+"""The REST API, mounted under ``/api``: one router per resource."""
+
+from fastapi import APIRouter
+
+from server.api import frames, messages, profiles, transmitter
+
+api_router = APIRouter(prefix="/api")
+for module in (messages, frames, profiles, transmitter):
+    api_router.include_router(module.router)

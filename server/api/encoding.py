@@ -1,0 +1,62 @@
+"""Frame encoders for stored messages: built on demand, a few kept warm in an LRU.
+
+Frame ``k`` of a message is a pure function of (bytes, name, profile, cells, k), so an encoder
+never goes stale: the LRU only saves rebuilding it for every batch the transmitter fetches.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+from fastapi import HTTPException, status
+
+from occ.stream import StreamEncoder
+from server.api.schemas import NOMINAL_REFRESH_HZ, MessagePublic
+from server.store import MessageStore, StoredMessage
+
+
+def new_encoder(data: bytes, *, name: str, profile: str, cells: int) -> StreamEncoder:
+    """The message's encoder; 422 if the link format refuses this message/profile/cells."""
+    try:
+        return StreamEncoder(data, name=name, profile=profile, cells=cells)
+    except ValueError as error:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"cannot send this message with profile {profile!r} and {cells} cells: {error}",
+        ) from None
+
+
+class EncoderCache:
+    """``get(message, profile, cells)``: the encoder, rebuilt only when it fell out of the LRU."""
+
+    def __init__(self, store: MessageStore, size: int) -> None:
+        self._store = store
+        self.get = lru_cache(maxsize=size)(self._build)
+
+    def _build(self, message: StoredMessage, profile: str, cells: int) -> StreamEncoder:
+        data = self._store.content(message)
+        return new_encoder(data, name=message.name, profile=profile, cells=cells)
+
+
+def link_facts(encoder: StreamEncoder) -> dict:
+    """What the encoder puts on screen, as stored with the message at upload."""
+    bits = encoder.geometry.bits_per_frame
+    data_frames_per_refresh = encoder.symbols / encoder.cycle  # blank and key frames carry none
+    return {
+        "frames_per_loop": encoder.cycle,
+        "bits_per_frame": bits,
+        "bit_rate_60hz": bits * NOMINAL_REFRESH_HZ * data_frames_per_refresh,
+    }
+
+
+def describe(message: StoredMessage) -> MessagePublic:
+    return MessagePublic(
+        id=message.id,
+        name=message.name,
+        size=message.size,
+        sha256=message.sha256,
+        profile=message.profile,
+        cells=message.cells,
+        created=message.created,
+        **message.facts,
+    )

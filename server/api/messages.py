@@ -1,0 +1,137 @@
+"""``/api/messages``: upload, list, read, download and delete messages.
+
+Every upload gets a new id, even for bytes already stored: a message is the bytes *plus* its
+name, profile and cell count. The bytes themselves are stored once per sha256.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import PurePosixPath
+from typing import Annotated
+from urllib.parse import quote
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
+from starlette.concurrency import run_in_threadpool
+
+from server.api.deps import (
+    CellsQuery,
+    MessageDep,
+    SettingsDep,
+    StoreDep,
+    require_write_token,
+)
+from server.api.encoding import describe, link_facts, new_encoder
+from server.api.schemas import MessagePublic, MessagesPublic, MessageText, ProfileName
+from server.api.uploads import UPLOAD_MEDIA_TYPES, read_upload
+from server.store import StoredMessage
+
+router = APIRouter(prefix="/messages", tags=["messages"])
+
+_UNSAFE_NAME = re.compile(r"[\x00-\x1f\x7f]")
+
+UPLOAD_BODY = {
+    "required": True,
+    "content": {
+        "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "properties": {"file": {"type": "string", "format": "binary"}},
+                "required": ["file"],
+            }
+        },
+        "application/json": {"schema": MessageText.model_json_schema()},
+    },
+}
+
+
+def clean_name(name: str) -> str:
+    """The file name without any directory part; 422 if nothing usable is left."""
+    base = PurePosixPath(name.replace("\\", "/")).name.strip()
+    if not base or base in {".", ".."} or _UNSAFE_NAME.search(base) or len(base) > 255:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"bad message name {name!r}: give a file name of 1..255 printable characters",
+        )
+    return base
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    dependencies=[Depends(require_write_token)],
+    openapi_extra={"requestBody": UPLOAD_BODY},
+    responses={
+        413: {"description": "The message is over the upload limit."},
+        415: {"description": f"Content-Type is not one of {', '.join(UPLOAD_MEDIA_TYPES)}."},
+        422: {"description": "Empty message, malformed body or unusable options."},
+    },
+)
+async def create_message(
+    request: Request,
+    response: Response,
+    store: StoreDep,
+    settings: SettingsDep,
+    name: Annotated[str | None, Query(description="Defaults to the uploaded file's name.")] = None,
+    profile: ProfileName | None = None,
+    cells: CellsQuery = None,
+) -> MessagePublic:
+    """Store a message: a raw body, a multipart ``file`` or JSON ``{"text": ...}``.
+
+    Every upload gets a new id; identical bytes are stored once (content-addressed by sha256).
+    A message the link format cannot send with this profile and cell count is refused (422)."""
+    upload = await read_upload(request, settings.max_upload_bytes)
+    if name is None:
+        name = upload.filename or ("message.txt" if upload.is_text else "message.bin")
+    name = clean_name(name)
+    profile_name = profile.value if profile else settings.default_profile
+    cells = cells or settings.default_cells
+
+    def encode_and_store() -> StoredMessage:  # CPU and disk work: off the event loop
+        # The encoder is built first, so a message the link refuses is never stored.
+        encoder = new_encoder(upload.data, name=name, profile=profile_name, cells=cells)
+        facts = link_facts(encoder)
+        return store.add(upload.data, name=name, profile=profile_name, cells=cells, facts=facts)
+
+    message = await run_in_threadpool(encode_and_store)
+    response.headers["Location"] = f"{request.url.path}/{message.id}"
+    return describe(message)
+
+
+@router.get("")
+def read_messages(store: StoreDep) -> MessagesPublic:
+    """All messages, newest first."""
+    return MessagesPublic(messages=[describe(m) for m in store.messages()])
+
+
+@router.get("/{message_id}", responses={404: {"description": "No such message."}})
+def read_message(message: MessageDep) -> MessagePublic:
+    return describe(message)
+
+
+@router.get(
+    "/{message_id}/content",
+    response_class=Response,
+    responses={
+        200: {"content": {"application/octet-stream": {}}, "description": "The stored bytes."},
+        404: {"description": "No such message."},
+    },
+)
+def read_message_content(message: MessageDep, store: StoreDep) -> Response:
+    """Download the message under its original name."""
+    return Response(
+        store.content(message),
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f"attachment; filename*=UTF-8''{quote(message.name)}"},
+    )
+
+
+@router.delete(
+    "/{message_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    dependencies=[Depends(require_write_token)],
+    responses={404: {"description": "No such message."}},
+)
+def delete_message(message: MessageDep, store: StoreDep) -> None:
+    store.delete(message.id)

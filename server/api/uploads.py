@@ -1,0 +1,112 @@
+"""Read an uploaded message from a request body in any of the three accepted forms.
+
+- ``application/octet-stream``: the body is the message;
+- ``multipart/form-data``: the message is the part named ``file`` (its file name is kept);
+- ``application/json``: ``{"text": "..."}``, stored UTF-8 encoded.
+
+The message may be at most ``limit`` bytes (413 otherwise). Multipart and JSON bodies get
+``WRAPPER_SLACK`` bytes more for their wrapping, and multipart needs a Content-Length so an
+oversized form is refused before it is parsed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fastapi import HTTPException, Request, status
+from pydantic import ValidationError
+from starlette.datastructures import UploadFile
+
+from server.api.schemas import MessageText
+
+WRAPPER_SLACK = 64 * 1024
+UPLOAD_MEDIA_TYPES = ("application/octet-stream", "multipart/form-data", "application/json")
+
+
+@dataclass(frozen=True, slots=True)
+class Upload:
+    data: bytes
+    filename: str | None
+    """The name the client gave the file (multipart only)."""
+    is_text: bool
+
+
+async def read_upload(request: Request, limit: int) -> Upload:
+    media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media_type == "application/octet-stream":
+        upload = Upload(await _read_body(request, limit, limit), None, is_text=False)
+    elif media_type == "application/json":
+        upload = _parse_json(await _read_body(request, limit + WRAPPER_SLACK, limit))
+    elif media_type == "multipart/form-data":
+        upload = await _parse_multipart(request, limit)
+    else:
+        raise HTTPException(
+            status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+            f"unsupported Content-Type {media_type or '(none)'!r}; "
+            f"send one of {', '.join(UPLOAD_MEDIA_TYPES)}",
+        )
+    if len(upload.data) > limit:
+        raise _too_large(limit)
+    if not upload.data:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT, "the message is empty; send at least one byte"
+        )
+    return upload
+
+
+def _too_large(limit: int) -> HTTPException:
+    return HTTPException(
+        status.HTTP_413_CONTENT_TOO_LARGE,
+        f"the message is over this server's upload limit of {limit} bytes",
+    )
+
+
+def _declared_length(request: Request) -> int | None:
+    value = request.headers.get("content-length")
+    return int(value) if value and value.isdigit() else None
+
+
+async def _read_body(request: Request, body_limit: int, message_limit: int) -> bytes:
+    """The whole body, refused as soon as it passes ``body_limit`` (chunked uploads included)."""
+    declared = _declared_length(request)
+    if declared is not None and declared > body_limit:
+        raise _too_large(message_limit)
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > body_limit:
+            raise _too_large(message_limit)
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _parse_json(body: bytes) -> Upload:
+    try:
+        text = MessageText.model_validate_json(body).text
+    except ValidationError as error:
+        problems = "; ".join(
+            f"{'.'.join(map(str, e['loc'])) or 'body'}: {e['msg']}" for e in error.errors()
+        )
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f'send JSON like {{"text": "..."}} ({problems})',
+        ) from None
+    return Upload(text.encode(), None, is_text=True)
+
+
+async def _parse_multipart(request: Request, limit: int) -> Upload:
+    declared = _declared_length(request)
+    if declared is None:
+        raise HTTPException(
+            status.HTTP_411_LENGTH_REQUIRED, "multipart uploads need a Content-Length header"
+        )
+    if declared > limit + WRAPPER_SLACK:
+        raise _too_large(limit)
+    form = await request.form(max_files=1, max_fields=8)
+    file = form.get("file")
+    if not isinstance(file, UploadFile):
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            "multipart upload has no file part named 'file'",
+        )
+    return Upload(await file.read(), file.filename, is_text=False)

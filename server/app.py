@@ -1,0 +1,82 @@
+"""The FastAPI app factory: REST API, optional live routes, and the static pages of ``web/``."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from html import escape
+from pathlib import Path
+
+from fastapi import APIRouter, FastAPI
+from fastapi.responses import FileResponse, HTMLResponse
+from fastapi.staticfiles import StaticFiles
+
+from server.api import api_router
+from server.api.encoding import EncoderCache
+from server.settings import Settings
+from server.store import MessageStore
+
+WEB_DIR = Path(__file__).resolve().parent.parent / "web"
+
+OPTIONAL_ROUTER_MODULES = ("server.live",)
+"""Modules exposing ``router``, included when they exist (websockets, health, metrics)."""
+
+
+def optional_routers() -> list[APIRouter]:
+    routers = []
+    for name in OPTIONAL_ROUTER_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as error:
+            if error.name != name:  # the module exists but one of its imports is missing
+                raise
+            continue
+        routers.append(module.router)
+    return routers
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    app = FastAPI(
+        title="eventocc",
+        summary="Screen-to-event-camera link: upload messages, play them as a dynamic marker.",
+        version="0.1.0",
+    )
+    app.state.settings = settings
+    app.state.store = MessageStore(settings.db_path)
+    app.state.encoders = EncoderCache(app.state.store, settings.encoder_cache_size)
+    app.state.transmitter_status = None
+
+    for router in (api_router, *optional_routers()):
+        app.include_router(router)
+    _add_pages(app, WEB_DIR)
+    return app
+
+
+def _add_pages(app: FastAPI, web_dir: Path) -> None:
+    """``/static/*`` serves ``web/``; every ``web/<page>.html`` is also served at ``/<page>``,
+    and ``/`` lists them."""
+    pages = sorted(p.stem for p in web_dir.glob("*.html"))
+    app.mount("/static", StaticFiles(directory=web_dir), name="static")
+
+    for page in pages:
+        app.add_api_route(
+            f"/{page}", _serve_file(web_dir / f"{page}.html"), include_in_schema=False
+        )
+
+    links = "".join(f'<li><a href="/{escape(p)}">{escape(p)}</a></li>' for p in pages)
+    index = (
+        '<!doctype html><html lang="en"><head><meta charset="utf-8"><title>eventocc</title>'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        '<link rel="stylesheet" href="/static/style.css"></head>'
+        f'<body class="index"><main><h1>eventocc</h1><ul>{links}'
+        '<li><a href="/docs">API</a></li></ul></main></body></html>'
+    )
+    app.add_api_route("/", lambda: HTMLResponse(index), include_in_schema=False)
+
+
+def _serve_file(path: Path) -> Callable[[], FileResponse]:
+    def serve() -> FileResponse:
+        return FileResponse(path)
+
+    return serve

@@ -1,0 +1,100 @@
+"""``make demo``: run the server, upload a sample message, print where to watch it.
+
+Ctrl-C stops everything. Each part of the demo is one step in ``main`` so more (the receiver on
+the virtual event camera) can be added beside the server.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import socket
+import threading
+import time
+import urllib.request
+from urllib.parse import quote
+
+import uvicorn
+
+from server.app import create_app
+from server.settings import Settings
+
+SAMPLE_NAME = "hello.txt"
+SAMPLE_TEXT = (
+    "Hello from eventocc! This message travels from a screen to an event camera as a blinking "
+    "marker, and the camera recovers both the bytes and its own 6-DoF pose.\n"
+)
+SAMPLE_SHA256 = hashlib.sha256(SAMPLE_TEXT.encode()).hexdigest()
+
+
+def port_is_free(host: str, port: int) -> bool:
+    with socket.socket() as sock:
+        try:
+            sock.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def start_server(settings: Settings) -> tuple[uvicorn.Server, threading.Thread]:
+    """Serve in a background thread; returns once the server accepts connections."""
+    server = uvicorn.Server(
+        uvicorn.Config(
+            create_app(settings), host=settings.host, port=settings.port, log_level="warning"
+        )
+    )
+    thread = threading.Thread(target=server.run, name="eventocc-server", daemon=True)
+    thread.start()
+    while not server.started:
+        if not thread.is_alive():
+            raise SystemExit(f"the server failed to start on {settings.host}:{settings.port}")
+        time.sleep(0.05)
+    return server, thread
+
+
+def bound_url(server: uvicorn.Server) -> str:
+    host, port = server.servers[0].sockets[0].getsockname()[:2]
+    return f"http://{host}:{port}"
+
+
+def upload_sample(base_url: str, settings: Settings) -> dict:
+    """Upload the sample message (reusing an identical earlier upload) and return its facts."""
+    with urllib.request.urlopen(f"{base_url}/api/messages") as response:
+        for message in json.load(response)["messages"]:
+            if message["name"] == SAMPLE_NAME and message["sha256"] == SAMPLE_SHA256:
+                return message
+    headers = {"Content-Type": "application/json"}
+    if settings.token is not None:
+        headers["Authorization"] = f"Bearer {settings.token.get_secret_value()}"
+    request = urllib.request.Request(
+        f"{base_url}/api/messages?name={quote(SAMPLE_NAME)}",
+        data=json.dumps({"text": SAMPLE_TEXT}).encode(),
+        headers=headers,
+        method="POST",
+    )
+    with urllib.request.urlopen(request) as response:
+        return json.load(response)
+
+
+def main() -> None:
+    settings = Settings()
+    if settings.port and not port_is_free(settings.host, settings.port):
+        settings = settings.model_copy(update={"port": 0})  # let the OS pick a free one
+    server, thread = start_server(settings)
+    base_url = bound_url(server)
+    message = upload_sample(base_url, settings)
+    print(f"eventocc server on {base_url}  (API docs: {base_url}/docs)")
+    print(f"transmitter: {base_url}/transmitter?id={message['id']}")
+    print("Ctrl-C to stop.")
+    try:
+        while thread.is_alive():
+            thread.join(0.5)
+    except KeyboardInterrupt:
+        print("\nstopping")
+    finally:
+        server.should_exit = True
+        thread.join()
+
+
+if __name__ == "__main__":
+    main()

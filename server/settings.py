@@ -1,0 +1,48 @@
+"""Server settings, read from ``EVENTOCC_*`` environment variables (or passed in by tests)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from occ.marker import MAX_CELLS, MIN_CELLS
+from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
+
+MIB = 1 << 20
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="EVENTOCC_", frozen=True)
+
+    data_dir: Path = Path("data")
+    """Holds the SQLite database; created on first use."""
+    max_upload_bytes: int = Field(64 * MIB, ge=1)
+    token: SecretStr | None = None
+    """When set, writes (upload, delete) need ``Authorization: Bearer <token>``."""
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    default_profile: str = DEFAULT_PROFILE
+    default_cells: int = Field(16, ge=MIN_CELLS, le=MAX_CELLS)
+    encoder_cache_size: int = Field(8, ge=1)
+    """Frame encoders kept warm, one per (message, profile, cells) being played."""
+
+    @field_validator("default_profile")
+    @classmethod
+    def _known_profile(cls, name: str) -> str:
+        if name not in PROFILE_NAMES:
+            raise ValueError(f"unknown profile {name!r}; choose one of {', '.join(PROFILE_NAMES)}")
+        return name
+
+    @field_validator("token")
+    @classmethod
+    def _non_empty_token(cls, token: SecretStr | None) -> SecretStr | None:
+        # An empty EVENTOCC_TOKEN= would otherwise silently mean "no token at all".
+        if token is not None and not token.get_secret_value():
+            raise ValueError("token must not be empty; unset EVENTOCC_TOKEN to disable it")
+        return token
+
+    @property
+    def db_path(self) -> Path:
+        return self.data_dir / "eventocc.db"

@@ -1,0 +1,253 @@
+"""REST API of the transmit service: messages, their storage, and every bad-input path."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from occ.profiles import DEFAULT_PROFILE
+from occ.stream import StreamEncoder
+from server.app import create_app
+from server.settings import Settings
+
+RAW = {"Content-Type": "application/octet-stream"}
+CAP = 4096
+
+
+def make_client(data_dir: Path, **options) -> TestClient:
+    return TestClient(create_app(Settings(data_dir=data_dir, max_upload_bytes=CAP, **options)))
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> TestClient:
+    return make_client(tmp_path)
+
+
+def upload(client: TestClient, data: bytes, query: str = "", **headers: str) -> dict:
+    response = client.post(f"/api/messages{query}", content=data, headers={**RAW, **headers})
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+def stored_state(client: TestClient) -> tuple[list[dict], int]:
+    return client.get("/api/messages").json()["messages"], client.app.state.store.blob_count()
+
+
+# --- uploads ---------------------------------------------------------------------------------
+def test_raw_upload_returns_the_message_facts(client: TestClient) -> None:
+    data = b"hello, event camera"
+    response = client.post(
+        "/api/messages?name=hi.txt&profile=paper&cells=8", content=data, headers=RAW
+    )
+    assert response.status_code == 201
+    facts = response.json()
+    assert response.headers["Location"] == f"/api/messages/{facts['id']}"
+    assert facts["name"] == "hi.txt"
+    assert facts["size"] == len(data)
+    assert facts["sha256"] == hashlib.sha256(data).hexdigest()
+    assert (facts["profile"], facts["cells"]) == ("paper", 8)
+    encoder = StreamEncoder(data, name="hi.txt", profile="paper", cells=8)
+    assert facts["frames_per_loop"] == encoder.cycle
+    assert facts["bits_per_frame"] == 64
+    assert facts["bit_rate_60hz"] == pytest.approx(64 * 30)  # data frame + blank frame
+    assert facts["created"].endswith("Z") or "+00:00" in facts["created"]
+
+
+def test_fast_profile_sends_data_on_almost_every_refresh(client: TestClient) -> None:
+    facts = upload(client, b"x" * 100, "?profile=fast&cells=16")
+    assert 256 * 30 < facts["bit_rate_60hz"] < 256 * 60
+
+
+def test_defaults_come_from_settings(tmp_path: Path) -> None:
+    client = make_client(tmp_path, default_cells=12)
+    facts = upload(client, b"abc")
+    assert (facts["profile"], facts["cells"], facts["name"]) == (DEFAULT_PROFILE, 12, "message.bin")
+
+
+def test_multipart_upload_keeps_the_file_name(client: TestClient) -> None:
+    response = client.post("/api/messages", files={"file": ("report.pdf", b"%PDF-1.7 ...")})
+    assert response.status_code == 201
+    assert response.json()["name"] == "report.pdf"
+    download = client.get(f"/api/messages/{response.json()['id']}/content")
+    assert download.content == b"%PDF-1.7 ..."
+    assert download.headers["content-disposition"] == "attachment; filename*=UTF-8''report.pdf"
+
+
+def test_json_upload_stores_utf8_text(client: TestClient) -> None:
+    response = client.post("/api/messages", json={"text": "grüße 👋"})
+    assert response.status_code == 201
+    facts = response.json()
+    assert facts["name"] == "message.txt"
+    assert client.get(f"/api/messages/{facts['id']}/content").content == "grüße 👋".encode()
+
+
+def test_name_loses_any_directory_part(client: TestClient) -> None:
+    assert upload(client, b"x", "?name=../../etc/passwd")["name"] == "passwd"
+    assert upload(client, b"x", "?name=C:%5Cdocs%5Cnote.txt")["name"] == "note.txt"
+
+
+def test_same_bytes_make_distinct_messages_sharing_one_blob(client: TestClient) -> None:
+    first, second = upload(client, b"same bytes"), upload(client, b"same bytes", "?cells=20")
+    assert first["id"] != second["id"]
+    assert first["sha256"] == second["sha256"]
+    assert client.app.state.store.blob_count() == 1
+    assert client.delete(f"/api/messages/{first['id']}").status_code == 204
+    assert client.get(f"/api/messages/{second['id']}/content").content == b"same bytes"
+    assert client.delete(f"/api/messages/{second['id']}").status_code == 204
+    assert client.app.state.store.blob_count() == 0
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(data=st.binary(min_size=1, max_size=CAP))
+def test_any_bytes_round_trip(client: TestClient, data: bytes) -> None:
+    facts = upload(client, data)
+    assert client.get(f"/api/messages/{facts['id']}/content").content == data
+
+
+# --- reading and deleting ----------------------------------------------------------------------
+def test_list_read_and_delete(client: TestClient) -> None:
+    older, newer = upload(client, b"one"), upload(client, b"two")
+    listed = client.get("/api/messages").json()["messages"]
+    assert [m["id"] for m in listed] == [newer["id"], older["id"]]  # newest first
+    assert client.get(f"/api/messages/{older['id']}").json() == older
+    assert client.delete(f"/api/messages/{older['id']}").status_code == 204
+    assert client.get(f"/api/messages/{older['id']}").status_code == 404
+    assert [m["id"] for m in client.get("/api/messages").json()["messages"]] == [newer["id"]]
+
+
+@pytest.mark.parametrize("suffix", ["", "/content", "/frames"])
+def test_unknown_id_is_404(client: TestClient, suffix: str) -> None:
+    response = client.get(f"/api/messages/0123456789ab{suffix}")
+    assert response.status_code == 404
+    assert response.json()["detail"] == "no message with id '0123456789ab'"
+
+
+def test_delete_unknown_id_is_404(client: TestClient) -> None:
+    assert client.delete("/api/messages/0123456789ab").status_code == 404
+
+
+def test_malformed_id_is_422(client: TestClient) -> None:
+    response = client.get("/api/messages/not-an-id")
+    assert response.status_code == 422
+    assert response.json()["detail"][0]["loc"] == ["path", "message_id"]
+
+
+def test_messages_survive_a_restart(tmp_path: Path) -> None:
+    facts = upload(make_client(tmp_path), b"persistent")
+    reopened = make_client(tmp_path)
+    assert reopened.get(f"/api/messages/{facts['id']}").json() == facts
+    assert reopened.get(f"/api/messages/{facts['id']}/content").content == b"persistent"
+
+
+# --- bad input ---------------------------------------------------------------------------------
+def detail(response) -> str:
+    body = response.json()["detail"]
+    return body if isinstance(body, str) else " ".join(e["msg"] for e in body)
+
+
+BAD_UPLOADS = {
+    "raw over the cap": ({"content": b"x" * (CAP + 1), "headers": RAW}, 413, "upload limit"),
+    "json over the cap": ({"json": {"text": "x" * (CAP + 1)}}, 413, "upload limit"),
+    "multipart over the cap": ({"files": {"file": ("a", b"x" * (CAP + 1))}}, 413, "upload limit"),
+    "empty raw body": ({"content": b"", "headers": RAW}, 422, "empty"),
+    "empty text": ({"json": {"text": ""}}, 422, "empty"),
+    "empty file": ({"files": {"file": ("a", b"")}}, 422, "empty"),
+    "malformed json": (
+        {"content": b'{"text": "x"', "headers": {"Content-Type": "application/json"}},
+        422,
+        'send JSON like {"text": "..."}',
+    ),
+    "json without text": ({"json": {"txt": "x"}}, 422, "text: Field required"),
+    "json text not a string": ({"json": {"text": 5}}, 422, "text: Input should be a valid string"),
+    "multipart without file": (
+        {"data": {"other": "x"}, "files": {"f": ("a", b"x")}},
+        422,
+        "'file'",
+    ),
+    "no content type": ({"content": b"x"}, 415, "send one of application/octet-stream"),
+    "text/plain": ({"content": b"x", "headers": {"Content-Type": "text/plain"}}, 415, "text/plain"),
+}
+BAD_OPTIONS = {
+    "unknown profile": ("?profile=turbo", "Input should be 'paper', 'robust' or 'fast'"),
+    "cells too few": ("?cells=7", "greater than or equal to 8"),
+    "cells too many": ("?cells=129", "less than or equal to 128"),
+    "cells not a number": ("?cells=many", "valid integer"),
+    "empty name": ("?name=", "bad message name"),
+    "name of dots": ("?name=..", "bad message name"),
+    "name with a control character": ("?name=a%0Ab", "bad message name"),
+    "payload too small for the profile": ("?profile=robust&cells=8", "use more cells"),
+    "paper cells not a multiple of 4": ("?profile=paper&cells=10", "multiple of 4"),
+}
+
+
+@pytest.mark.parametrize("case", BAD_UPLOADS.values(), ids=BAD_UPLOADS.keys())
+def test_bad_upload_is_refused_with_a_reason(client: TestClient, case: tuple) -> None:
+    request, status, reason = case
+    response = client.post("/api/messages", **request)
+    assert response.status_code == status
+    assert reason in detail(response)
+
+
+@pytest.mark.parametrize("case", BAD_OPTIONS.values(), ids=BAD_OPTIONS.keys())
+def test_bad_option_is_refused_with_a_reason(client: TestClient, case: tuple) -> None:
+    query, reason = case
+    response = client.post(f"/api/messages{query}", content=b"x", headers=RAW)
+    assert response.status_code == 422
+    assert reason in detail(response)
+
+
+def test_chunked_upload_over_the_cap_is_refused(client: TestClient) -> None:
+    def chunks():
+        for _ in range(CAP // 1000 + 1):
+            yield b"x" * 1000
+
+    assert client.post("/api/messages", content=chunks(), headers=RAW).status_code == 413
+
+
+def test_failed_requests_change_nothing(client: TestClient) -> None:
+    kept = upload(client, b"keep me")
+    before = stored_state(client)
+    for request, _, _ in BAD_UPLOADS.values():
+        client.post("/api/messages", **request)
+    for query, _ in BAD_OPTIONS.values():
+        client.post(f"/api/messages{query}", content=b"keep me", headers=RAW)
+    client.delete("/api/messages/0123456789ab")
+    assert stored_state(client) == before
+    assert client.get(f"/api/messages/{kept['id']}/content").content == b"keep me"
+
+
+# --- write token -------------------------------------------------------------------------------
+def test_writes_need_the_token_when_one_is_set(tmp_path: Path) -> None:
+    client = make_client(tmp_path, token="s3cret")
+    for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "Basic s3cret"}):
+        response = client.post("/api/messages", content=b"x", headers={**RAW, **headers})
+        assert response.status_code == 401
+        assert "Bearer <token>" in response.json()["detail"]
+    facts = upload(client, b"x", Authorization="Bearer s3cret")
+    assert client.get(f"/api/messages/{facts['id']}").status_code == 200  # reads stay open
+    assert client.delete(f"/api/messages/{facts['id']}").status_code == 401
+    assert client.get(f"/api/messages/{facts['id']}").status_code == 200
+    delete = client.delete(
+        f"/api/messages/{facts['id']}", headers={"Authorization": "Bearer s3cret"}
+    )
+    assert delete.status_code == 204
+
+
+def test_profiles_lists_what_an_upload_may_choose(tmp_path: Path) -> None:
+    body = (
+        make_client(tmp_path, default_profile="paper", default_cells=24).get("/api/profiles").json()
+    )
+    assert body == {
+        "profiles": ["paper", "robust", "fast"],
+        "default_profile": "paper",
+        "default_cells": 24,
+        "min_cells": 8,
+        "max_cells": 128,
+    }
