@@ -1,0 +1,117 @@
+"""``simulate(scene, duration_s)``: a streaming recording of the virtual event camera.
+
+Iterating a ``Recording`` runs the simulation from the start (same seed, same events), one
+``chunk_us`` window at a time, so memory stays bounded however long the recording is.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from receiver.events import EVENT_DTYPE, empty_events
+from receiver.sim.display import DisplayTimeline
+from receiver.sim.moving import MovingRenderer
+from receiver.sim.optics import centre_rays, rays_to_plane, sample_rays
+from receiver.sim.render import StaticRenderer
+from receiver.sim.scene import Scene
+from receiver.sim.sensor import BackgroundNoise, PixelArray, background_rates, to_events
+
+_MARGIN_PX = 4.0
+"""Pixels beyond the marker's outline that may still see it (blur, footprint)."""
+
+
+class Recording:
+    def __init__(self, scene: Scene, duration_us: int, chunk_us: int) -> None:
+        self.scene = scene
+        self.duration_us = duration_us
+        self.chunk_us = chunk_us
+        self.trajectory = scene.motion.trajectory(scene.rig)
+        limit = getattr(self.trajectory, "duration_us", None)
+        if limit is not None and duration_us > limit:
+            raise ValueError(f"the trajectory lasts {limit / 1e6:.3f} s, shorter than the "
+                             f"requested {duration_us / 1e6:.3f} s")
+
+    @property
+    def width(self) -> int:
+        return self.scene.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.scene.camera.height
+
+    def pose_at(self, t_us: np.ndarray) -> np.ndarray:
+        """(n, 4, 4) ground-truth T_world_cam (marker frame) at times ``t_us``."""
+        return self.trajectory.pose_at(np.asarray(t_us))
+
+    def refresh_times_us(self, k0: int, k1: int) -> np.ndarray:
+        """Times (us, float) at which refreshes ``k0 .. k1 - 1`` start scanning out (top row)."""
+        d = self.scene.display
+        return (np.arange(k0, k1, dtype=np.float64) - self.scene.start_refresh) * d.period_us
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        return _run(self)
+
+
+def simulate(scene: Scene, duration_s: float, chunk_us: int = 10_000) -> Recording:
+    """Events of ``scene`` over ``duration_s`` seconds, as a re-iterable stream of chunks."""
+    if not duration_s > 0:
+        raise ValueError(f"duration must be positive, got {duration_s} s")
+    if chunk_us < 100:
+        raise ValueError(f"chunk_us must be >= 100 us, got {chunk_us}")
+    return Recording(scene, round(duration_s * 1e6), int(chunk_us))
+
+
+def _run(rec: Recording) -> Iterator[np.ndarray]:
+    scene, sensor, cam = rec.scene, rec.scene.sensor, rec.scene.camera
+    rng_pixels, rng_noise, rng_delay = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(scene.seed).spawn(3))
+    pixels = PixelArray.draw(sensor, cam.width * cam.height, rng_pixels)
+    timeline = DisplayTimeline(scene.encoder, scene.display, scene.start_refresh)
+    renderer = _renderer(scene, rec, timeline, pixels)
+    rad = scene.radiometry
+    intensity = np.full(cam.width * cam.height, rad.wall / rad.white)
+    intensity[renderer.pix_index] = renderer.irradiance_now() / rad.white
+    noise = BackgroundNoise(*background_rates(sensor, pixels, intensity))
+    pending = empty_events()
+    for t0 in range(0, rec.duration_us, rec.chunk_us):
+        t1 = min(t0 + rec.chunk_us, rec.duration_us)
+        signal = renderer.window(t0, t1)
+        background = noise.events(t0, t1, rng_noise)
+        t, i, p = (np.concatenate([a, b]) for a, b in zip(signal, background, strict=True))
+        events = to_events(t, i, p, cam.width, sensor, rng_delay)
+        if len(pending):
+            events = np.concatenate([pending, events])
+            events = events[np.argsort(events["t"], kind="stable")]
+        cut = int(np.searchsorted(events["t"], t1))
+        pending = events[cut:] if t1 < rec.duration_us else empty_events()
+        yield np.ascontiguousarray(events[:cut], dtype=EVENT_DTYPE)
+
+
+def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: PixelArray):
+    sensor, cam = scene.sensor, scene.camera
+    if not rec.trajectory.is_static:
+        return MovingRenderer(scene, rec.trajectory, timeline, pixels)
+    T = rec.trajectory.pose_at(np.zeros(1))[0]
+    pix_index = _pixels_near_marker(scene, T)
+    rays = sample_rays(cam, scene.optics, pix_index % cam.width, pix_index // cam.width)
+    points = rays_to_plane(rays, T)
+    return StaticRenderer(pix_index, points, scene.layout, timeline, scene.radiometry,
+                          pixels.threshold_on, pixels.threshold_off, sensor.refractory_us)
+
+
+def _pixels_near_marker(scene: Scene, T_world_cam: np.ndarray) -> np.ndarray:
+    """Flat indices of the pixels whose centre ray lands on the marker or just beside it."""
+    cam = scene.camera
+    ys, xs = np.divmod(np.arange(cam.width * cam.height), cam.width)
+    centre = rays_to_plane(centre_rays(cam, xs, ys), T_world_cam)
+    depth = np.linalg.norm(T_world_cam[:3, 3] - scene.rig.centre)
+    margin = _MARGIN_PX * depth / cam.K[0, 0] * 2  # x2: oblique views stretch the footprint
+    lo = scene.rig.corners[0, 0] - margin
+    hi = scene.rig.corners[2, 0] + margin
+    with np.errstate(invalid="ignore"):
+        near = ((centre[:, 0] >= lo) & (centre[:, 0] <= hi)
+                & (centre[:, 1] >= lo) & (centre[:, 1] <= hi))
+    return np.flatnonzero(near)
+

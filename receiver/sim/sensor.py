@@ -1,0 +1,252 @@
+"""The event sensor: parameters, presets, and the level-crossing kernels.
+
+Model (ESIM, Rebecq et al. CoRL 2018, with the noise of v2e, Hu et al. CVPRW 2021, and the
+timing of IEBCS): a pixel holds a reference log intensity ``R``; whenever its log irradiance
+``ln(J + dark)`` moves a whole threshold ``C`` (per pixel, per polarity: fixed-pattern mismatch)
+away from ``R`` it emits an event and ``R`` steps by ``C``. Crossing times come from linear
+interpolation between samples (ESIM) or, where the irradiance is a known exponential, from the
+exact inverse. A pixel that fired less than the refractory period ago stays silent, but its
+reference still advances (as in ESIM, v2e and the OpenEB simulator). Leak (ON) and shot noise
+(both polarities, more frequent in the dark) are drawn as Poisson processes, independently of the
+reference (a simplification: v2e lets a noise event move ``R``). Every event is then delayed by
+the pixel latency plus Gaussian jitter, and an optional readout cap drops events uniformly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+
+import numba
+import numpy as np
+
+from receiver.events import EVENT_DTYPE
+
+SHOT_NOISE_BRIGHT_FACTOR = 0.25
+"""v2e: shot-noise rate at full intensity relative to the dark rate."""
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Event-sensor parameters. ``preset()`` gives documented sets; fields may be overridden with
+    ``dataclasses.replace``."""
+
+    name: str = "ideal"
+    lux: float = 250.0
+    """Ambient illuminance of the scene: sets the wall and screen-reflection levels and, through
+    the pixel intensity, the shot-noise rate."""
+    threshold_on: float = 0.2
+    threshold_off: float = 0.2
+    """Contrast thresholds in ln units."""
+    threshold_sigma: float = 0.0
+    """Per-pixel standard deviation of both thresholds (fixed-pattern mismatch)."""
+    refractory_us: float = 0.0
+    leak_hz: float = 0.0
+    """ON background events per pixel per second."""
+    shot_hz: float = 0.0
+    """Shot-noise events per pixel per second in the dark (both polarities together)."""
+    latency_us: float = 0.0
+    jitter_us: float = 0.0
+    dark_nits: float = 0.01
+    """Dark current as an equivalent scene luminance: the floor under the log."""
+    max_rate_hz: float | None = None
+    """Readout cap in events per second (None: unlimited); excess events drop uniformly per ms."""
+
+    def __post_init__(self) -> None:
+        if self.lux < 0:
+            raise ValueError(f"lux must be >= 0, got {self.lux}")
+        if min(self.threshold_on, self.threshold_off) < 0.01:
+            raise ValueError("contrast thresholds must be >= 0.01 ln units, got "
+                             f"{self.threshold_on}, {self.threshold_off}")
+        for name in ("threshold_sigma", "refractory_us", "leak_hz", "shot_hz", "latency_us",
+                     "jitter_us"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.dark_nits <= 0:
+            raise ValueError(f"dark_nits must be positive, got {self.dark_nits}")
+        if self.max_rate_hz is not None and self.max_rate_hz <= 0:
+            raise ValueError(f"max_rate_hz must be positive or None, got {self.max_rate_hz}")
+
+    @classmethod
+    def preset(cls, name: str, lux: float | None = None) -> SensorModel:
+        try:
+            base = PRESETS[name]
+        except KeyError:
+            raise ValueError(f"unknown sensor preset {name!r}; valid presets: "
+                             f"{', '.join(PRESETS)}") from None
+        return base if lux is None else replace(base, lux=lux)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SensorModel:
+        return cls(**d)
+
+
+_GEN4 = SensorModel(
+    name="gen4-indoor",
+    lux=250.0,  # the paper's "normal indoor lighting"
+    # IMX636 nominal contrast sensitivity ~25 % (vendor figure) -> ln(1.25) = 0.22.
+    threshold_on=0.22,
+    threshold_off=0.22,
+    threshold_sigma=0.03,  # v2e CLI default; v2e/OpenEB "noisy" use 0.05
+    refractory_us=50.0,  # IEBCS example value (v2e CLI 500 us, OpenEB GPU 10 us)
+    leak_hz=0.1,  # v2e / OpenEB "noisy" leak rate
+    shot_hz=0.1,  # low end of v2e/OpenEB noisy 0.1-10 Hz: ~100 k ev/s over a 1 MP sensor
+    latency_us=200.0,  # IEBCS example (IMX636 vendor figure: < 100 us at 1 klux)
+    jitter_us=50.0,  # IEBCS example
+)
+
+PRESETS: dict[str, SensorModel] = {
+    # ESIM's clean defaults: thresholds 0.2, no mismatch, no noise, no delay.
+    "ideal": SensorModel(),
+    "gen4-indoor": _GEN4,
+    # The paper's other two light levels (Sec. V-A): night-time and sunlit rooms.
+    "gen4-night": replace(_GEN4, name="gen4-night", lux=10.0),
+    "gen4-sunlit": replace(_GEN4, name="gen4-sunlit", lux=1000.0),
+}
+
+
+@dataclass(frozen=True)
+class PixelArray:
+    """Per-pixel draws of one sensor instance (fixed pattern), flattened row-major."""
+
+    threshold_on: np.ndarray
+    threshold_off: np.ndarray
+    leak_factor: np.ndarray
+
+    @classmethod
+    def draw(cls, sensor: SensorModel, n: int, rng: np.random.Generator) -> PixelArray:
+        def thresholds(mean: float) -> np.ndarray:
+            c = mean + sensor.threshold_sigma * rng.standard_normal(n)
+            return np.clip(c, 0.01, 1.0)
+
+        on, off = thresholds(sensor.threshold_on), thresholds(sensor.threshold_off)
+        # v2e: per-pixel log-normal leak rate, coefficient of variation 0.1 in decades.
+        leak = np.exp(math.log(10) * 0.1 * rng.standard_normal(n))
+        return cls(on, off, leak)
+
+
+# --- level crossings (numba) -----------------------------------------------------------------
+# Kernel state per pixel: ``ref`` (reference log level) and ``last`` (time of the last emitted
+# event). Events are written to ``out_t`` / ``out_i`` (pixel index) / ``out_p`` up to their
+# capacity; the returned count may exceed it, and the caller then reruns with more room.
+
+
+@numba.njit(cache=True, inline="always")
+def _emit(t, i, p, last, refractory, out_t, out_i, out_p, n):
+    if t - last[i] >= refractory:
+        last[i] = t
+        if n < out_t.shape[0]:
+            out_t[n] = t
+            out_i[n] = i
+            out_p[n] = p
+        return n + 1
+    return n
+
+
+@numba.njit(cache=True)
+def cross_linear(ta, la, tb, lb, i, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n):
+    """Events of pixel ``i`` while its log intensity goes linearly from ``la`` at ``ta`` to
+    ``lb`` at ``tb`` (``ta == tb``: a step, every event at that instant)."""
+    dl = lb - la
+    while lb >= ref[i] + c_on[i]:
+        level = ref[i] + c_on[i]
+        t = tb if dl == 0.0 else ta + (level - la) / dl * (tb - ta)
+        n = _emit(min(max(t, ta), tb), i, 1, last, refractory, out_t, out_i, out_p, n)
+        ref[i] = level
+    while lb <= ref[i] - c_off[i]:
+        level = ref[i] - c_off[i]
+        t = tb if dl == 0.0 else ta + (level - la) / dl * (tb - ta)
+        n = _emit(min(max(t, ta), tb), i, -1, last, refractory, out_t, out_i, out_p, n)
+        ref[i] = level
+    return n
+
+
+@numba.njit(cache=True)
+def cross_exponential(t0, ua, ub, a, b, tau, i, ref, last, c_on, c_off, refractory,
+                      out_t, out_i, out_p, n):
+    """Events of pixel ``i`` whose irradiance (dark floor included) is ``a + b exp(-u / tau)``
+    at ``t0 + u``, for ``u`` from ``ua`` to ``ub``; crossing times are exact. Returns the
+    event count and the log level at ``ub``."""
+    lb = math.log(a + b * math.exp(-ub / tau))
+    while lb >= ref[i] + c_on[i]:
+        level = ref[i] + c_on[i]
+        u = -tau * math.log((math.exp(level) - a) / b)
+        n = _emit(t0 + min(max(u, ua), ub), i, 1, last, refractory, out_t, out_i, out_p, n)
+        ref[i] = level
+    while lb <= ref[i] - c_off[i]:
+        level = ref[i] - c_off[i]
+        u = -tau * math.log((math.exp(level) - a) / b)
+        n = _emit(t0 + min(max(u, ua), ub), i, -1, last, refractory, out_t, out_i, out_p, n)
+        ref[i] = level
+    return n, lb
+
+
+# --- noise, delay, readout (numpy, per chunk) --------------------------------------------------
+
+
+def background_rates(sensor: SensorModel, pixels: PixelArray, intensity: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel leak (ON) and shot-noise rates in Hz. ``intensity`` is each pixel's irradiance
+    relative to the screen's white (v2e's ``(I + 20) / 275`` on 8-bit values)."""
+    leak = sensor.leak_hz * pixels.leak_factor
+    rel = (np.clip(intensity, 0.0, 1.0) * 255 + 20) / 275
+    bright = 1.0 - (1.0 - SHOT_NOISE_BRIGHT_FACTOR) * rel
+    c_nominal = 0.5 * (sensor.threshold_on + sensor.threshold_off)
+    c_pixel = 0.5 * (pixels.threshold_on + pixels.threshold_off)
+    shot = sensor.shot_hz * bright * c_nominal / c_pixel
+    return leak, shot
+
+
+class BackgroundNoise:
+    """Poisson leak and shot-noise events over the whole sensor, drawn per time window."""
+
+    def __init__(self, leak_hz: np.ndarray, shot_hz: np.ndarray) -> None:
+        self._sources = []
+        for rates, polarity in ((leak_hz, 1), (shot_hz, 0)):
+            total = float(rates.sum())
+            if total > 0:
+                self._sources.append((total, np.cumsum(rates) / total, polarity))
+
+    def events(self, t0: float, t1: float, rng: np.random.Generator
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ts, idx, ps = [np.zeros(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
+        for total, cdf, polarity in self._sources:
+            n = rng.poisson(total * (t1 - t0) * 1e-6)
+            ts.append(rng.uniform(t0, t1, n))
+            idx.append(np.minimum(np.searchsorted(cdf, rng.random(n)), len(cdf) - 1))
+            ps.append(np.full(n, polarity, np.int8) if polarity else
+                      rng.choice(np.array([-1, 1], np.int8), n))
+        return np.concatenate(ts), np.concatenate(idx), np.concatenate(ps)
+
+
+def to_events(t: np.ndarray, idx: np.ndarray, p: np.ndarray, width: int, sensor: SensorModel,
+              rng: np.random.Generator) -> np.ndarray:
+    """Delay, quantise to microseconds, cap the readout rate, and pack as sorted events."""
+    t = t + sensor.latency_us
+    if sensor.jitter_us:
+        t = t + sensor.jitter_us * rng.standard_normal(len(t))
+    t_us = np.maximum(np.rint(t), 0).astype(np.int64)
+    if sensor.max_rate_hz is not None and len(t_us):
+        keep = _readout_cap(t_us, sensor.max_rate_hz * 1e-3, rng)
+        t_us, idx, p = t_us[keep], idx[keep], p[keep]
+    order = np.argsort(t_us, kind="stable")
+    ev = np.empty(len(t_us), EVENT_DTYPE)
+    ev["t"] = t_us[order]
+    ev["x"] = idx[order] % width
+    ev["y"] = idx[order] // width
+    ev["p"] = p[order]
+    return ev
+
+
+def _readout_cap(t_us: np.ndarray, per_ms: float, rng: np.random.Generator) -> np.ndarray:
+    """Mask keeping at most ``per_ms`` events in each millisecond, chosen uniformly."""
+    ms = t_us // 1000
+    order = np.lexsort((rng.random(len(ms)), ms))
+    first = np.searchsorted(ms[order], ms[order], side="left")
+    rank = np.arange(len(ms)) - first
+    keep = np.zeros(len(ms), bool)
+    keep[order[rank < per_ms]] = True
+    return keep
