@@ -1,0 +1,123 @@
+"""Everything the receiver must be told about the link, and its tuning knobs (paper Sec. IV)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+from occ.marker import MarkerGeometry
+from occ.profiles import get_profile
+from receiver.camera import CameraModel
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """Pre-processing (Sec. IV-A); both filters are off unless enabled."""
+
+    refractory: bool = False
+    same_polarity_us: int = 1000
+    opposite_polarity_us: int = 1000
+    neighbourhood: bool = False
+    radius_px: int = 1
+    """3x3 window, as in the paper."""
+    window_us: int = 10_000
+    min_neighbours: int = 3
+
+
+@dataclass(frozen=True)
+class DetectorParams:
+    """Temporal + spatial detection (Sec. IV-B)."""
+
+    window_us: int = 500_000
+    """DFT window T; also the interval between detection attempts."""
+    sigma_frac: float = 0.1
+    """Width of the triplet-period Gaussian, as a fraction of the blink frequency."""
+    heat_threshold: float = 0.2
+    """Heat-map binarisation, relative to its (robust) maximum."""
+    min_side_px: float = 12.0
+    """Smallest accepted locator side (the paper uses 50 px on a 1280x720 sensor)."""
+    max_abs_cos: float = 0.4
+    """Corner angles must lie within ~66..114 deg (perspective bends the paper's 90 +- 15)."""
+    max_side_ratio: float = 1.8
+    """Longest over shortest side of the locator quadrilateral."""
+    min_harmonic_ratio: float = 0.08
+    """|X_k| / X_0 of the ROI's signed event count; noise gives ~1/sqrt(events), ``fast`` ~0.15."""
+    min_orientation_score: float = 0.25
+    """Contrast between the expected white and black cells of the inner locator."""
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """Edge tracking and pose (Sec. IV-C)."""
+
+    gate_px: float = 6.0
+    """theta_d: events this close to a projected edge join its cluster."""
+    alpha: float = 0.3
+    """Cluster slots per pixel of edge length."""
+    min_update_interval_us: int = 250
+    """At most one pose update per interval (the authors' 4 kHz tick)."""
+    max_age_us: int = 30_000
+    """Slots older than this are stale and leave the cluster."""
+    huber_px: float = 1.0
+    max_iterations: int = 10
+
+
+@dataclass(frozen=True)
+class DecoderParams:
+    """Data decoding (Sec. IV-D)."""
+
+    template_px: int = 0
+    """Template pixels per cell; 0 picks one from the cell's size in the image."""
+    cell_margin: float = 0.2
+    """Fraction of each cell side ignored at its border (blur, pose error)."""
+    steps: int = 3
+    """Sub-windows per frame, each unwarped with the pose current at its time."""
+    lost_after_frames: int = 6
+    """Consecutive frames without the inner locator before tracking counts as lost."""
+    min_locator_score: float = 0.3
+
+
+@dataclass(frozen=True)
+class ReceiverConfig:
+    camera: CameraModel
+    cells: int = 16
+    profile: str = "robust"
+    refresh_hz: float = 60.0
+    marker_size_m: float = 0.272
+    ring: int = 0
+    filters: FilterParams = field(default_factory=FilterParams)
+    detector: DetectorParams = field(default_factory=DetectorParams)
+    tracker: TrackerParams = field(default_factory=TrackerParams)
+    decoder: DecoderParams = field(default_factory=DecoderParams)
+    pose_interval_us: int = 1000
+    """Longest gap between two output poses while the camera (and pose) stand still."""
+
+    def __post_init__(self) -> None:
+        get_profile(self.profile)  # raises with the list of valid names
+        if not 1.0 <= self.refresh_hz <= 1000.0:
+            raise ValueError(f"refresh rate must be 1..1000 Hz, got {self.refresh_hz}")
+        if self.marker_size_m <= 0:
+            raise ValueError(f"marker size must be positive metres, got {self.marker_size_m}")
+        MarkerGeometry(self.cells, self.ring)  # raises for an unsupported N
+
+    @cached_property
+    def geometry(self) -> MarkerGeometry:
+        return MarkerGeometry(self.cells, self.ring)
+
+    @property
+    def data_every(self) -> int:
+        return get_profile(self.profile).data_every
+
+    @property
+    def refresh_us(self) -> float:
+        return 1e6 / self.refresh_hz
+
+    @property
+    def frame_us(self) -> float:
+        """Time between data frames."""
+        return self.refresh_us * self.data_every
+
+    @property
+    def blink_hz(self) -> float:
+        """The inner locator is shown on every other refresh in every profile."""
+        return self.refresh_hz / 2

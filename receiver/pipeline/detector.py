@@ -1,0 +1,236 @@
+"""Marker detection (paper Sec. IV-B): where it blinks, when it blinks, and which way is up.
+
+1. *Temporal.* Per pixel, polarity-alternation triplets (pos-neg-pos or neg-pos-neg) whose period
+   is close to the blink period vote into a heat map; its largest blob is the region of interest.
+   The phase of the ROI's positive-event count at the blink frequency (DFT bin ``f * T``, not a
+   fixed index) gives the time of the data frames' positive bursts.
+2. *Spatial.* The positive events around those bursts outline the inner locator; its convex
+   quadrilateral must pass the paper's criteria (four corners, large, right angles, equal sides).
+3. *Orientation.* The ring of the inner locator (solid "L" at bottom-left, dashed top and right)
+   is read in all four rotations; the best match orders the corners TL, TR, BR, BL.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from occ.marker import MarkerGeometry
+from receiver.pipeline.config import DetectorParams, ReceiverConfig
+
+
+class MarkerNotFound(Exception):
+    """Detection failed; the message says which stage and why."""
+
+
+@dataclass(frozen=True)
+class Detection:
+    corners_px: np.ndarray
+    """(4, 2) outer corners of the inner locator in sensor pixels, TL, TR, BR, BL."""
+    burst_us: float
+    """Time of a positive burst of the inner locator (middle of the marker's scan-out)."""
+    blink_hz: float
+    harmonic_ratio: float
+    orientation_score: float
+
+
+# --- temporal ------------------------------------------------------------------------------
+@numba.njit(cache=True, nogil=True)
+def _triplet_heat(t, x, y, p, width, height, freq_hz, sigma_hz):
+    heat = np.zeros((height, width), np.float32)
+    last_pol = np.zeros((height, width), np.int8)
+    last_flip = np.full((2, height, width), -1, np.int64)  # last neg->pos / pos->neg times
+    for i in range(t.shape[0]):
+        xi, yi, pi = x[i], y[i], p[i]
+        if pi == last_pol[yi, xi]:
+            continue  # runs of one polarity collapse into one transition
+        last_pol[yi, xi] = pi
+        d = 0 if pi > 0 else 1
+        prev = last_flip[d, yi, xi]
+        last_flip[d, yi, xi] = t[i]
+        if prev >= 0 and t[i] > prev:
+            z = (1e6 / (t[i] - prev) - freq_hz) / sigma_hz
+            heat[yi, xi] += np.exp(-0.5 * z * z)
+    return heat
+
+
+def blink_heatmap(
+    events: np.ndarray, width: int, height: int, blink_hz: float, sigma_frac: float
+) -> np.ndarray:
+    """(height, width) sum of Gaussian weights of the triplets whose period matches the blink."""
+    return _triplet_heat(
+        events["t"],
+        events["x"],
+        events["y"],
+        events["p"],
+        width,
+        height,
+        blink_hz,
+        sigma_frac * blink_hz,
+    )
+
+
+def largest_region(heat: np.ndarray, threshold: float) -> np.ndarray:
+    """Convex hull (k, 2) of the largest above-threshold heat region, nearby blobs included.
+
+    The dashed sides of the inner locator are separate blobs, so blobs within a tenth of the
+    largest region's size join it."""
+    peak = float(np.percentile(heat[heat > 0], 99.5)) if np.any(heat > 0) else 0.0
+    if peak <= 0:
+        raise MarkerNotFound("temporal: no pixel blinks at the data-frame rate")
+    binary = (heat >= threshold * peak).astype(np.uint8)
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    hulls = [cv2.convexHull(c) for c in contours]
+    best = hulls[int(np.argmax([cv2.contourArea(h) for h in hulls]))]
+    x, y, w, h = cv2.boundingRect(best)
+    pad = max(2, int(0.1 * max(w, h)))
+    lo, hi = np.array([x - pad, y - pad]), np.array([x + w + pad, y + h + pad])
+    pts = np.argwhere(binary)[:, ::-1]
+    pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
+    return cv2.convexHull(pts.astype(np.int32)).reshape(-1, 2)
+
+
+def blink_phase(
+    t_us: np.ndarray,
+    t_start: int,
+    window_us: int,
+    blink_hz: float,
+    polarity: np.ndarray | None = None,
+) -> tuple[float, float]:
+    """(burst time, |X_k| / X_0) of event times at the blink frequency.
+
+    With ``polarity``, the signal is the positive minus the negative count. The paper counts
+    positive events and notes negative ones differ only by half a period; their difference adds
+    both in phase and cancels the ``fast`` profile's payload, which toggles either way at random.
+
+    ``X_k`` is bin ``k = f * T`` of the DFT of the event count over the window cut to whole
+    blink periods (so the bin sits exactly on ``f``), taken in the limit of infinitely fine count
+    bins: a sum over the events themselves, free of bin quantisation."""
+    period_us = 1e6 / blink_hz
+    span = max(1, int(window_us // period_us)) * period_us
+    inside = (t_us >= t_start) & (t_us < t_start + span)
+    t = t_us[inside] - t_start
+    w = np.ones(len(t)) if polarity is None else np.asarray(polarity[inside], float)
+    if not len(t):
+        return float("nan"), 0.0
+    x_k = np.sum(w * np.exp(-2j * np.pi * t / period_us))
+    phase = (2 * np.pi - np.angle(x_k)) % (2 * np.pi)
+    return float(t_start + phase / (2 * np.pi) * period_us), float(abs(x_k) / len(t))
+
+
+# --- spatial ---------------------------------------------------------------------------------
+def quadrilateral(points: np.ndarray) -> np.ndarray:
+    """(4, 2) float corners, clockwise on screen (y down), approximating a convex point set."""
+    hull = cv2.convexHull(points.astype(np.float32).reshape(-1, 1, 2))
+    perimeter = cv2.arcLength(hull, True)
+    for eps in np.linspace(0.01, 0.1, 19):
+        poly = cv2.approxPolyDP(hull, eps * perimeter, True).reshape(-1, 2)
+        if len(poly) <= 4:
+            break
+    if len(poly) != 4:
+        raise MarkerNotFound(f"spatial: the blinking region has {len(poly)} corners, not 4")
+    area2 = np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])
+    return (poly if area2 > 0 else poly[::-1]).astype(np.float64)
+
+
+def check_quadrilateral(quad: np.ndarray, params: DetectorParams) -> None:
+    """The paper's criteria: large enough, corners near right angles, sides of similar length."""
+    sides = np.roll(quad, -1, axis=0) - quad
+    lengths = np.linalg.norm(sides, axis=1)
+    if lengths.min() < params.min_side_px:
+        raise MarkerNotFound(
+            f"spatial: locator side {lengths.min():.0f} px is below "
+            f"{params.min_side_px:.0f} px; move closer or use fewer cells"
+        )
+    if lengths.max() / lengths.min() > params.max_side_ratio:
+        raise MarkerNotFound("spatial: the blinking region is not square (view too oblique?)")
+    cosines = np.abs(np.sum(sides * np.roll(sides, 1, axis=0), axis=1)) / (
+        lengths * np.roll(lengths, 1)
+    )
+    if cosines.max() > params.max_abs_cos:
+        raise MarkerNotFound("spatial: the blinking region's corners are not right angles")
+
+
+def ring_cells(geometry: MarkerGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """(k, 2) (column, row) of the inner locator's ring cells and their canonical colour."""
+    loc = geometry.inner_locator
+    ring = np.zeros_like(loc)
+    ring[[0, -1], :] = ring[:, [0, -1]] = True
+    rows, cols = np.nonzero(ring)
+    return np.stack([cols, rows], 1), loc[rows, cols]
+
+
+def orient(
+    quad: np.ndarray, burst: np.ndarray, geometry: MarkerGeometry
+) -> tuple[np.ndarray, float]:
+    """Rotate the corner order so that the inner locator reads canonically; (corners, score)."""
+    n = geometry.locator_side
+    cells, white = ring_cells(geometry)
+    canonical = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float64)
+    centres = (cells + 0.5).reshape(-1, 1, 2)
+    blurred = cv2.blur(burst.astype(np.float32), (3, 3))
+    best = (-np.inf, quad)
+    for r in range(4):
+        corners = np.roll(quad, -r, axis=0)
+        H = cv2.getPerspectiveTransform(canonical.astype(np.float32), corners.astype(np.float32))
+        px = cv2.perspectiveTransform(centres, H).reshape(-1, 2)
+        xi = np.clip(np.rint(px[:, 0]).astype(int), 0, burst.shape[1] - 1)
+        yi = np.clip(np.rint(px[:, 1]).astype(int), 0, burst.shape[0] - 1)
+        on = blurred[yi, xi] > 0.5
+        score = on[white].mean() - on[~white].mean()
+        best = max(best, (score, corners), key=lambda b: b[0])
+    return best[1], float(best[0])
+
+
+def burst_image(
+    events: np.ndarray, burst_us: float, period_us: float, shape: tuple[int, int], periods: int = 3
+) -> np.ndarray:
+    """Boolean image of the pixels that brighten at the bursts of the last ``periods`` blinks.
+
+    A pixel counts when it has more positive events in the half period around a burst than in
+    the other half: blinking cells do, while edges swept by camera motion brighten at any time."""
+    pos = events[events["p"] > 0]
+    pos = pos[pos["t"] >= pos["t"][-1] - periods * period_us] if len(pos) else pos
+    phase = (pos["t"] - burst_us) % period_us
+    weight = np.where(np.minimum(phase, period_us - phase) <= period_us / 4, 1, -1)
+    flat = pos["y"].astype(np.int64) * shape[1] + pos["x"]
+    excess = np.bincount(flat, weights=weight, minlength=shape[0] * shape[1])
+    return excess.reshape(shape) > 0
+
+
+def detect(events: np.ndarray, config: ReceiverConfig) -> Detection:
+    """Find the marker in ``events`` (a window of about ``detector.window_us``)."""
+    params, cam = config.detector, config.camera
+    if len(events) < 100:
+        raise MarkerNotFound("temporal: almost no events in the detection window")
+    heat = blink_heatmap(events, cam.width, cam.height, config.blink_hz, params.sigma_frac)
+    hull = largest_region(heat, params.heat_threshold)
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    cv2.fillConvexPoly(mask, hull.astype(np.int32), 1)
+    roi = events[mask[events["y"], events["x"]] > 0]
+    t_start = int(events["t"][0])
+    window = int(events["t"][-1]) - t_start
+    burst, ratio = blink_phase(roi["t"], t_start, window, config.blink_hz, roi["p"])
+    if not ratio >= params.min_harmonic_ratio:
+        raise MarkerNotFound(
+            f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
+            f"Hz (harmonic ratio {ratio:.2f}); check --refresh-hz and --profile"
+        )
+    period = 1e6 / config.blink_hz
+    img = burst_image(events, burst, period, mask.shape) & (mask > 0)
+    points = np.argwhere(img)[:, ::-1]
+    if len(points) < 16:
+        raise MarkerNotFound("spatial: too few positive events at the blink phase")
+    quad = quadrilateral(points)
+    check_quadrilateral(quad, params)
+    corners, score = orient(quad, img, config.geometry)
+    if score < params.min_orientation_score:
+        raise MarkerNotFound(
+            f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
+        )
+    # The burst time refers to the latest whole period inside the window.
+    last = burst + np.floor((events["t"][-1] - burst) / period) * period
+    return Detection(corners, float(last), config.blink_hz, ratio, score)

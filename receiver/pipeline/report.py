@@ -1,0 +1,129 @@
+"""What a decoding run produced: poses, frames, messages, and the JSON report about them.
+
+``DecodeLog`` collects a ``Receiver``'s outputs; with a ``FrameTruth`` (from a simulator scene)
+it also scores every frame's bits against what the screen really showed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from receiver.pipeline.metrics import best_alignment
+from receiver.pipeline.receiver import (
+    FrameOutput,
+    MessageOutput,
+    Output,
+    PoseEstimate,
+    Receiver,
+    StateChange,
+)
+from receiver.poses import write_tum
+
+
+class FrameTruth:
+    """The bits the screen showed around a time, for BER (receiver frame indices are relative,
+    so each read frame is matched to the closest of the data refreshes near its time)."""
+
+    def __init__(self, encoder, refresh_hz: float, start_refresh: int = 0) -> None:
+        self.encoder = encoder
+        self.refresh_hz = refresh_hz
+        self.start_refresh = start_refresh
+
+    def errors(self, bits: np.ndarray, t_us: int) -> int:
+        k = self.start_refresh + int(np.floor(t_us * self.refresh_hz / 1e6))
+        ks = [j for j in range(max(0, k - 2), k + 2) if self.encoder.is_data_frame(j)]
+        if not ks:
+            return bits.size
+        return best_alignment(bits, [self.encoder.payload_bits(j) for j in ks])[1]
+
+
+class DecodeLog:
+    def __init__(self, receiver: Receiver, truth: FrameTruth | None = None) -> None:
+        self.receiver = receiver
+        self.truth = truth
+        self.pose_t: list[int] = []
+        self.poses: list[np.ndarray] = []
+        self.messages: list[MessageOutput] = []
+        self.states: list[StateChange] = []
+        self.frames = 0
+        self.bits = 0
+        self.bit_errors = 0
+
+    def add(self, outputs: list[Output]) -> None:
+        for o in outputs:
+            if isinstance(o, PoseEstimate):
+                self.pose_t.append(o.t_us)
+                self.poses.append(o.T_world_cam)
+            elif isinstance(o, FrameOutput) and o.accepted:
+                self.frames += 1
+                if self.truth is not None:
+                    self.bits += o.read.bits.size
+                    self.bit_errors += self.truth.errors(o.read.bits, o.read.t_us)
+            elif isinstance(o, MessageOutput):
+                self.messages.append(o)
+            elif isinstance(o, StateChange):
+                self.states.append(o)
+
+    @property
+    def ber(self) -> float | None:
+        return self.bit_errors / self.bits if self.bits else None
+
+    def report(self) -> dict:
+        st = self.receiver.stats
+        start = st.first_event_us or 0
+        duration_s = max(1e-9, ((st.last_event_us or 0) - start) / 1e6)
+        delivered = sum(len(m.message.data) for m in self.messages)
+        cpu = dict(st.cpu_s)
+        cpu_total = sum(cpu.values())
+        return {
+            "events": st.events,
+            "duration_s": duration_s,
+            "locked": bool(st.lock_times_us),
+            "time_to_lock_s": (st.lock_times_us[0] - start) / 1e6 if st.lock_times_us else None,
+            "tracking_losses": st.losses,
+            "reacquisitions": max(0, len(st.lock_times_us) - 1),
+            "detection_failures": dict(
+                sorted(st.detection_failures.items(), key=lambda kv: -kv[1])
+            ),
+            "frames_read": st.frames_read,
+            "frames_seen": st.frames_seen,
+            "ber": self.ber,
+            "bits_scored": self.bits,
+            "pose_updates": st.pose_updates,
+            "poses": len(self.poses),
+            "messages": [
+                {
+                    "name": m.message.name,
+                    "size": len(m.message.data),
+                    "sha256": m.message.sha256,
+                    "verified": hashlib.sha256(m.message.data).hexdigest() == m.message.sha256,
+                    "t_s": (m.t_us - start) / 1e6,
+                }
+                for m in self.messages
+            ],
+            "goodput_bps": delivered * 8 / duration_s,
+            "stream_progress": {str(k): v for k, v in self.receiver.stream.progress().items()},
+            "cpu_s": cpu,
+            "realtime_factor": duration_s / cpu_total if cpu_total else None,
+        }
+
+    def write(self, out_dir: Path) -> dict:
+        """trajectory.tum, messages/<name>, report.json; returns the report."""
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_tum(
+            out_dir / "trajectory.tum",
+            np.array(self.pose_t, np.int64),
+            np.array(self.poses).reshape(-1, 4, 4),
+        )
+        msg_dir = out_dir / "messages"
+        for m in self.messages:
+            msg_dir.mkdir(exist_ok=True)
+            name = Path(m.message.name).name or m.message.sha256[:16]
+            (msg_dir / name).write_bytes(m.message.data)
+        report = self.report()
+        (out_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+        return report

@@ -1,0 +1,106 @@
+"""Unit tests of the pipeline's building blocks on hand-made inputs (no simulator)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from occ.marker import MarkerGeometry
+from receiver.camera import CameraModel
+from receiver.events import make_events
+from receiver.pipeline.config import FilterParams, ReceiverConfig
+from receiver.pipeline.detector import (
+    MarkerNotFound,
+    blink_phase,
+    check_quadrilateral,
+    quadrilateral,
+)
+from receiver.pipeline.filters import EventFilter
+from receiver.pipeline.metrics import pose_errors, umeyama
+from receiver.pipeline.pose import project_ideal, refine_pose
+from receiver.poses import make_pose
+
+K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
+SIZE = 0.272
+
+
+def _looking_at_marker(distance: float = 0.6) -> np.ndarray:
+    """T_cam_world of a camera facing the marker's centre from ``distance`` metres."""
+    return make_pose(np.eye(3), [-SIZE / 2, -SIZE / 2, distance])
+
+
+def test_refractory_filter_drops_bursts_and_keeps_spaced_events():
+    ev = make_events([0, 100, 2000, 2100, 5000], [3] * 5, [4] * 5, [1, 1, -1, 1, 1])
+    f = EventFilter(
+        FilterParams(refractory=True, same_polarity_us=1000, opposite_polarity_us=500), 8, 8
+    )
+    assert f(ev)["t"].tolist() == [0, 2000, 5000]
+
+
+def test_neighbourhood_filter_needs_supporting_neighbours():
+    ev = make_events([0, 10, 20, 30, 40], [1, 2, 1, 2, 6], [1, 1, 2, 2, 6], [1] * 5)
+    f = EventFilter(FilterParams(neighbourhood=True, min_neighbours=3), 8, 8)
+    assert f(ev)["t"].tolist() == [30]  # the 4th of a 2x2 block; the far one stays alone
+
+
+def test_filter_rejects_bad_parameters():
+    with pytest.raises(ValueError, match="radius"):
+        EventFilter(FilterParams(neighbourhood=True, radius_px=0), 8, 8)
+
+
+@settings(max_examples=25, deadline=None)
+@given(phase=st.floats(0, 0.999), jitter=st.floats(0, 300))
+def test_blink_phase_recovers_burst_time(phase, jitter):
+    rng = np.random.default_rng(0)
+    period = 1e6 / 30
+    bursts = 1000 + phase * period + period * np.arange(15)
+    t = np.repeat(bursts, 50) + rng.normal(0, jitter + 1, 750)
+    burst, ratio = blink_phase(t, 0, 500_000, 30.0)
+    err = (burst - bursts[0] + period / 2) % period - period / 2
+    assert abs(err) < 200 and ratio > 0.8
+
+
+def test_quadrilateral_orders_corners_clockwise_and_checks_shape():
+    pts = np.array([[10, 10], [60, 12], [58, 62], [9, 59], [30, 30]])
+    quad = quadrilateral(pts)
+    assert len(quad) == 4
+    x, y = quad[:, 0], quad[:, 1]
+    assert np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0
+    cfg = ReceiverConfig(CameraModel(346, 260, K))
+    check_quadrilateral(quad, cfg.detector)
+    with pytest.raises(MarkerNotFound, match="not square"):
+        check_quadrilateral(np.array([[0, 0], [100, 0], [100, 20], [0, 20.0]]), cfg.detector)
+
+
+def test_refine_pose_recovers_a_perturbed_pose_from_edge_points():
+    geo = MarkerGeometry(16)
+    edges = geo.tracked_edges(SIZE)
+    T_true = _looking_at_marker() @ make_pose(
+        Rotation.from_euler("xyz", [5, -8, 3], degrees=True).as_matrix(), [0.01, -0.02, 0.0]
+    )
+    s = np.linspace(0.05, 0.95, 40)
+    world = edges[:, :1] + s[None, :, None] * (edges[:, 1:] - edges[:, :1])  # (8, 40, 3)
+    pts = project_ideal(T_true, K, world).reshape(-1, 2)
+    edge = np.repeat(np.arange(8), 40)
+    T0 = T_true @ make_pose(
+        Rotation.from_euler("xyz", [1, -1, 2], degrees=True).as_matrix(), [0.01, 0.005, 0.02]
+    )
+    T, cost = refine_pose(T0, K, pts, edge, edges, 1.0, 20)
+    assert cost < 1e-6
+    assert np.allclose(T[:3, 3], T_true[:3, 3], atol=1e-4)
+
+
+def test_umeyama_undoes_a_rigid_motion_and_ate_is_zero():
+    rng = np.random.default_rng(1)
+    pos = rng.normal(size=(50, 3))
+    R = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
+    Rf, tf = umeyama(pos, pos @ R.T + [1, 2, 3])
+    assert np.allclose(Rf, R) and np.allclose(tf, [1, 2, 3])
+    T = make_pose(np.broadcast_to(np.eye(3), (50, 3, 3)), pos)
+    err = pose_errors(np.arange(50) * 10_000, T, T)
+    assert err.ate_rmse_m < 1e-9 and err.rpe_rot_rmse_deg < 1e-6
+    with pytest.raises(ValueError, match="at least 3"):
+        umeyama(pos[:2], pos[:2])
