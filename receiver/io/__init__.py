@@ -62,6 +62,7 @@ WRITERS: dict[str, Callable[..., int]] = {
     "text": write_text,
 }
 READ_FORMATS = tuple(READERS)
+RAW_FORMATS = ("raw", *ENCODINGS)
 WRITE_FORMATS = tuple(WRITERS)
 
 # Extension -> (format when reading, format when writing).
@@ -121,12 +122,15 @@ def detect_format(path: str | Path) -> str:
 
 
 def read_events(path: str | Path, *, format: str | None = None, chunk_events: int | None = None,
-                chunk_us: int | None = None, on_error: str = "raise") -> EventStream:
+                chunk_us: int | None = None, on_error: str = "raise",
+                monotonic: bool = False) -> EventStream:
     """Stream the events of a file as chunks of ``receiver.events.EVENT_DTYPE``.
 
     ``chunk_events`` / ``chunk_us`` re-cut the chunks by count or time window (at most one).
     ``on_error="stop"`` turns a truncated or corrupt file into a ``UserWarning`` and a clean
     end after the last whole event; ``"raise"`` raises ``EventFileError``.
+    Timestamps are kept as recorded, small reversals included; ``monotonic`` holds the clock
+    at its latest value instead (for RAW files at the sensor's time words, as faery does).
     """
     path = Path(path)
     if on_error not in ("raise", "stop"):
@@ -139,7 +143,12 @@ def read_events(path: str | Path, *, format: str | None = None, chunk_events: in
         format = detect_format(path)
     elif not path.exists():
         raise FileNotFoundError(f"no such event file: {path}")
-    stream = READERS[format](path)
+    if format in RAW_FORMATS:
+        stream = open_raw(path, None if format == "raw" else format, monotonic=monotonic)
+    else:
+        stream = READERS[format](path)
+        if monotonic:
+            stream.map_chunks(_hold_clock)
     if on_error == "stop":
         stream.map_chunks(_stop_on_error)
     if chunk_events is not None:
@@ -147,6 +156,16 @@ def read_events(path: str | Path, *, format: str | None = None, chunk_events: in
     if chunk_us is not None:
         stream.map_chunks(lambda chunks: rechunk_by_time(chunks, chunk_us))
     return stream
+
+
+def _hold_clock(chunks: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
+    latest = np.iinfo(np.int64).min
+    for chunk in chunks:
+        if len(chunk):
+            chunk = chunk.copy()
+            np.maximum(np.maximum.accumulate(chunk["t"]), latest, out=chunk["t"])
+            latest = int(chunk["t"][-1])
+        yield chunk
 
 
 def _stop_on_error(chunks: Iterator[np.ndarray]) -> Iterator[np.ndarray]:

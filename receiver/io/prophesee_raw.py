@@ -39,7 +39,7 @@ EVT2_MAX_T = (1 << 34) - 1  # TIME_HIGH carries t[33:6]
 EVT3_MAX_T = EVT2_MAX_T
 
 # Decoder state slots (one int64 array carried across blocks).
-T_MAX, TIME_HIGH, TIME_LOW, LOOPS, ROW, BASE_X, VECT_P = range(7)
+T_MAX, TIME_HIGH, TIME_LOW, LOOPS, ROW, BASE_X, VECT_P, MONOTONIC = range(8)
 # Decoder outcome codes and what they mean.
 OK, NO_TIME, NO_ROW, NO_BASE, UNKNOWN_WORD, OUTSIDE, BACKWARDS = range(7)
 PROBLEMS = {
@@ -52,10 +52,11 @@ PROBLEMS = {
 }
 
 
-def new_decoder_state() -> np.ndarray:
-    state = np.full(7, -1, dtype=np.int64)
+def new_decoder_state(monotonic: bool = False) -> np.ndarray:
+    state = np.full(8, -1, dtype=np.int64)
     state[T_MAX] = np.iinfo(np.int64).min + MAX_TIME_REVERSAL_US
     state[TIME_LOW] = state[LOOPS] = state[VECT_P] = 0
+    state[MONOTONIC] = monotonic
     return state
 
 
@@ -88,6 +89,7 @@ def _decode_evt3(words, state, ot, ox, oy, op, width, height):
     """
     t_max, high, low, loops = state[T_MAX], state[TIME_HIGH], state[TIME_LOW], state[LOOPS]
     row, base, vect_p = state[ROW], state[BASE_X], state[VECT_P]
+    monotonic = state[MONOTONIC] != 0
     t = (loops << 24) | (high << 12) | low
     n = 0
     err = OK
@@ -108,15 +110,17 @@ def _decode_evt3(words, state, ot, ox, oy, op, width, height):
             row = w & 0x7FF
         elif kind == 0x6:  # EVT_TIME_LOW; a decrease is sensor reordering, not a wrap
             low = w & 0xFFF
-            t = (loops << 24) | (high << 12) | low
+            t_low = (loops << 24) | (high << 12) | low
+            t = max(t, t_low) if monotonic else t_low
         elif kind == 0x8:  # EVT_TIME_HIGH; a drop of half the range or more is a 24-bit wrap
             new_high = w & 0xFFF
             if high >= new_high + 2048:
                 loops += 1
             high = new_high
             low = 0
-            t = (loops << 24) | (high << 12)
-            err, t_max = _advance_time(t, t_max)
+            t_high = (loops << 24) | (high << 12)
+            err, t_max = _advance_time(t_high, t_max)
+            t = max(t, t_high) if monotonic else t_high
         elif kind == 0x3:  # VECT_BASE_X
             base = w & 0x7FF
             vect_p = (w >> 11) & 1
@@ -248,8 +252,12 @@ def header_encoding(header: dict[str, str]) -> str | None:
     return {"2.0": "evt2", "2.1": "evt21", "3.0": "evt3"}.get(header.get("evt", ""))
 
 
-def open_raw(path: Path, encoding: str | None = None) -> EventStream:
-    """Stream a RAW file; ``encoding`` overrides the header (needed for headerless files)."""
+def open_raw(path: Path, encoding: str | None = None, *, monotonic: bool = False) -> EventStream:
+    """Stream a RAW file; ``encoding`` overrides the header (needed for headerless files).
+
+    EVT 3.0 sensors send TIME_LOW words that step back by a few microseconds; by default they
+    are decoded literally, as OpenEB does. ``monotonic`` holds the clock at its latest value
+    instead, so timestamps never decrease (the rule faery and some other decoders follow)."""
     with path.open("rb") as f:
         header, payload = read_header(f)
     named = header_encoding(header)
@@ -267,14 +275,14 @@ def open_raw(path: Path, encoding: str | None = None) -> EventStream:
         raise EventFileError(path, f"header geometry {geometry} is not a sensor size", offset=0)
     width, height = geometry or (None, None)
     return EventStream(
-        _decode_file(path, payload, ENCODINGS[encoding], width, height),
+        _decode_file(path, payload, ENCODINGS[encoding], width, height, monotonic),
         path=path, format=encoding, width=width, height=height, size=path.stat().st_size,
     )
 
 
 def _decode_file(path: Path, payload: int, enc: Encoding, width: int | None,
-                 height: int | None) -> Iterator[Progressed]:
-    state = new_decoder_state()
+                 height: int | None, monotonic: bool) -> Iterator[Progressed]:
+    state = new_decoder_state(monotonic)
     limit_w, limit_h = width or COORD_LIMIT, height or COORD_LIMIT
     offset = payload
     with path.open("rb") as f:
