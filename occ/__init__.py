@@ -4,4 +4,8 @@
 - ``profiles``: the link profiles (``paper``, ``robust``, ``fast``);
 - ``stream``: ``StreamEncoder`` (frame k of a message) and ``StreamDecoder`` (messages back);
 - ``report``: the JSON schema the receiver sends to the server.
+
+Their parts: ``paper_codec`` (the paper's raw RS-coded bit stream), ``frame_codec`` (one framed
+data frame: header, CRC, RS, interleaving, whitening), ``framing`` (cell order, header, CRC),
+``fec`` and ``rs_kernel`` (Reed-Solomon), ``fountain`` (RaptorQ blocks and their schedule).
 """

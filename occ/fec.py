@@ -38,24 +38,23 @@ def _gf_matmul(rows: np.ndarray, matrix: np.ndarray) -> np.ndarray:
 
 @cache
 def _parity_matrix(k: int, nsym: int) -> np.ndarray:
-    """(k, nsym): row i is the parity of the unit message e_i (encoding is linear)."""
+    """(k, nsym): row i is the parity of the unit message e_i, i.e. x^(nsym + k-1-i) mod g(x)
+    for reedsolo's generator polynomial g (encoding is linear)."""
+    g = np.array(reedsolo.rs_generator_poly(nsym), dtype=np.uint8)  # monic, highest first
     out = np.zeros((k, nsym), dtype=np.uint8)
-    for i in range(k):
-        unit = bytearray(k)
-        unit[i] = 1
-        out[i] = reedsolo.rs_encode_msg(unit, nsym)[k:]
+    row = g[1:].copy()  # x^nsym mod g
+    for i in range(k - 1, -1, -1):
+        out[i] = row
+        row = np.append(row[1:], 0) ^ GF_MUL[row[0], g[1:]]  # times x, reduced mod g
     return out
 
 
 @cache
 def _syndrome_matrix(n: int, nsym: int) -> np.ndarray:
-    """(n, nsym): row i is the syndrome vector of the unit codeword e_i."""
-    out = np.zeros((n, nsym), dtype=np.uint8)
-    for i in range(n):
-        unit = bytearray(n)
-        unit[i] = 1
-        out[i] = reedsolo.rs_calc_syndromes(unit, nsym)[1:]  # reedsolo prepends a 0
-    return out
+    """(n, nsym): syndrome j of a codeword is its polynomial at alpha^j, so byte i (the
+    coefficient of x^(n-1-i)) contributes with weight alpha^(j (n-1-i))."""
+    powers = np.outer(np.arange(n - 1, -1, -1), np.arange(nsym)) % 255
+    return GF_EXP[powers].astype(np.uint8)
 
 
 @dataclass(frozen=True)
@@ -88,18 +87,20 @@ class ReedSolomon:
         return ~_gf_matmul(codewords, _syndrome_matrix(self.n, self.nsym)).any(axis=1)
 
     def decode(
-        self, codewords: np.ndarray, erasures: np.ndarray | None = None
+        self, codewords: np.ndarray, erasures: np.ndarray | None = None, margin: int = 0
     ) -> tuple[np.ndarray, np.ndarray]:
         """Correct (m, n) codewords; ``erasures`` is an optional (m, n) bool mask of bytes known
-        to be unreliable. Returns the (m, k) data and an (m,) bool mask of codewords that
-        decoded; the data of the others is left as received."""
+        to be unreliable. ``margin`` parity bytes are kept back for detection: corrections need
+        ``2 errors + erasures <= n - k - margin``, so a word far from every codeword is far less
+        often "corrected" into the wrong one. Returns the (m, k) data and an (m,) bool mask of
+        codewords that decoded; the data of the others is left as received."""
         codewords = np.array(codewords, dtype=np.uint8).reshape(-1, self.n)
         if erasures is None:
             erasures = np.zeros(codewords.shape, dtype=bool)
         erasures = np.asarray(erasures, dtype=bool).reshape(codewords.shape)
         ok = self.syndromes_clean(codewords) & ~erasures.any(axis=1)
         if not ok.all():
-            ok |= correct_rows(codewords, erasures, ~ok, self.nsym)
+            ok |= correct_rows(codewords, erasures, ~ok, self.nsym, self.nsym - margin)
         return codewords[:, : self.k], ok
 
 

@@ -7,19 +7,31 @@ last frame exactly gets no extra all-zero frame; an empty message is one all-zer
 
 There is no header, so the decoder cannot tell one frame from another: it must be given the
 message size (that fixes the layout) and fed the data frames *in order*, as the authors' receiver
-is. Because the transmitter loops, a codeword that fails is decoded again from the next cycle.
-Leading all-white frames (the blink preamble) are skipped until the first other frame arrives,
-so a message whose first frame is all ones must be sent without a preamble.
+is, with none lost or repeated. It finds where the cycle starts from the blink preamble or, when
+it joined later, by trying every rotation of one cycle of frames (``PaperDecoder``). Because
+the transmitter loops, a codeword that fails is decoded again from the next cycle. All-white
+frames count as preamble, so a message whose coded frames include an all-white one needs the
+``robust`` profile.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
 from occ.fec import paper_rs
 from occ.framing import byte_min, bytes_to_cells, cells_to_bytes
+
+DETECTION_MARGIN = 2
+"""Parity bytes the paper decoder keeps for detection. There is no CRC, and rs(255, 251) can
+correct 2 errors: a word with 3 or more is then "corrected" to a wrong codeword about half the
+time. Correcting one error less makes that ~1.5e-5, and the looping transmitter resends."""
+
+
+PADDING_ONES_MAX = 0.1
+"""Share of ones (bit errors) the zero padding may show under the right rotation."""
 
 
 def _check_cells(cells: int) -> None:
@@ -74,17 +86,29 @@ class PaperEncoder:
 
 
 class PaperDecoder:
-    """Recovers a message of known ``size`` from its data frames pushed in order."""
+    """Recovers a message of known ``size`` from its data frames pushed in order.
+
+    The decoder must learn which frame of the cycle it is looking at. After the blink preamble
+    (all-white frames), the next frame is frame 0. A receiver that joined later holds one whole
+    cycle of frames and tries every rotation: it accepts the one rotation under which the zero
+    padding is (nearly) zero and every codeword decodes, and waits for the next cycle if none
+    or several do (so it never guesses).
+    """
 
     def __init__(self, size: int, cells: int, erasure_below: float) -> None:
-        self.layout = PaperLayout(size, cells)
+        self.layout = lay = PaperLayout(size, cells)
         self.erasure_below = erasure_below
-        lay = self.layout
         self.coded = np.zeros(lay.frames * lay.frame_bytes, dtype=np.uint8)
-        self.erased = np.zeros_like(self.coded, dtype=bool)
+        self.erased = np.ones_like(self.coded, dtype=bool)  # bytes not received yet
         self.data = bytearray(size)
         self.done = np.zeros(lay.codewords, dtype=bool)
-        self.pushed = 0  # data frames pushed since the first non-preamble frame
+        self.ends = np.minimum(np.arange(1, lay.codewords + 1) * lay.rs.n, lay.coded_size)
+        """Byte just past each codeword in the coded stream."""
+        self.next_index: int | None = None
+        """Cycle index of the next frame pushed, once known."""
+        self.in_preamble = False
+        self.recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=lay.frames)
+        self.pushed = 0
 
     @property
     def complete(self) -> bool:
@@ -92,28 +116,85 @@ class PaperDecoder:
 
     def push(self, bits: np.ndarray, confidence: np.ndarray | None) -> None:
         lay = self.layout
-        if self.pushed == 0 and np.all(bits) and lay.size:
-            return  # still in the blink preamble
-        j = self.pushed % lay.frames
         self.pushed += 1
-        lo = j * lay.frame_bytes
-        self.coded[lo : lo + lay.frame_bytes] = cells_to_bytes(bits, lay.frame_bytes)
+        frame = cells_to_bytes(bits, lay.frame_bytes)
+        erased = np.zeros(lay.frame_bytes, dtype=bool)
         if confidence is not None:
-            low = byte_min(confidence, lay.frame_bytes) < self.erasure_below
-            self.erased[lo : lo + lay.frame_bytes] = low
-        # Decode every pending codeword that ends inside this frame.
-        for i in np.flatnonzero(~self.done):
-            start, end = lay.codeword_span(i)
-            if not lo <= end - 1 < lo + lay.frame_bytes:
-                continue
-            self._decode(i, start, end)
+            erased = byte_min(confidence, lay.frame_bytes) < self.erasure_below
+        if self.next_index is None:
+            self._find_phase(frame, erased)
+            return
+        self._store(self.next_index, frame, erased)
+        self.next_index = (self.next_index + 1) % lay.frames
 
-    def _decode(self, i: int, start: int, end: int) -> None:
-        rs, pad = self.layout.rs, self.layout.rs.n - (end - start)
-        word = np.concatenate([np.zeros(pad, np.uint8), self.coded[start:end]])
-        erased = np.concatenate([np.zeros(pad, bool), self.erased[start:end]])
-        data, ok = rs.decode(word, erased)
-        if ok[0]:
-            lo, hi = self.layout.data_span(i)
-            self.data[lo:hi] = data[0, pad:].tobytes()
-            self.done[i] = True
+    def _find_phase(self, frame: np.ndarray, erased: np.ndarray) -> None:
+        lay = self.layout
+        if lay.size and np.all(frame == 0xFF):
+            self.in_preamble = True  # the blink preamble: data starts with the next other frame
+            self.recent.clear()
+            return
+        if self.in_preamble:
+            self.next_index = 1 % lay.frames
+            self._store(0, frame, erased)
+            return
+        self.recent.append((frame, erased))
+        if len(self.recent) < lay.frames or self.pushed % lay.frames:
+            return  # search once per cycle of frames
+        rotation = self._unique_rotation()
+        if rotation is not None:
+            for i, (held, held_erased) in enumerate(self.recent):
+                self._place((rotation + i) % lay.frames, held, held_erased)
+            self._decode_codewords(0, lay.codewords)
+            self.next_index = rotation
+
+    def _unique_rotation(self) -> int | None:
+        """The cycle index of the oldest held frame, if exactly one choice decodes."""
+        lay, rs = self.layout, self.layout.rs
+        found = []
+        for r in range(lay.frames):
+            order = [self.recent[(c - r) % lay.frames] for c in range(lay.frames)]
+            coded = np.concatenate([f for f, _ in order])
+            padding = np.unpackbits(coded[lay.coded_size :])
+            if padding.size and padding.mean() > PADDING_ONES_MAX:
+                continue  # real padding is zeros (bar bit errors); another rotation's is data
+            erased = np.concatenate([e for _, e in order])
+            starts = np.arange(lay.codewords) * rs.n
+            if all(
+                self._correct(coded, erased, a, b) is not None
+                for a, b in zip(starts, self.ends, strict=True)
+            ):
+                found.append(r)
+                if len(found) > 1:
+                    return None
+        return found[0] if found else None
+
+    def _place(self, index: int, frame: np.ndarray, erased: np.ndarray) -> tuple[int, int]:
+        """Put frame ``index`` of the cycle in place; returns its byte range."""
+        lo, hi = index * self.layout.frame_bytes, (index + 1) * self.layout.frame_bytes
+        self.coded[lo:hi], self.erased[lo:hi] = frame, erased
+        return lo, hi
+
+    def _store(self, index: int, frame: np.ndarray, erased: np.ndarray) -> None:
+        """Place frame ``index`` and decode the codewords that end in it."""
+        lo, hi = self._place(index, frame, erased)
+        self._decode_codewords(*np.searchsorted(self.ends, [lo + 1, hi + 1]))
+
+    def _decode_codewords(self, first: int, stop: int) -> None:
+        lay = self.layout
+        for i in range(first, stop):
+            if self.done[i]:
+                continue
+            data = self._correct(self.coded, self.erased, i * lay.rs.n, self.ends[i])
+            if data is not None:
+                a, b = lay.data_span(i)
+                self.data[a:b] = data
+                self.done[i] = True
+
+    def _correct(self, coded: np.ndarray, erased: np.ndarray, start: int, end: int) -> bytes | None:
+        """The data of the (possibly shortened) codeword at bytes [start, end), or None."""
+        rs = self.layout.rs
+        pad = rs.n - (end - start)  # a shortened codeword is a full one with leading zeros
+        word = np.concatenate([np.zeros(pad, np.uint8), coded[start:end]])
+        mask = np.concatenate([np.zeros(pad, bool), erased[start:end]])
+        data, ok = rs.decode(word, mask, margin=DETECTION_MARGIN)
+        return data[0, pad:].tobytes() if ok[0] else None

@@ -71,11 +71,12 @@ def _syndromes(msg, nsym, exp, log):
 
 
 @njit(cache=True)
-def _correct(msg, nsym, erase_pos, exp, log):
-    """Correct ``msg`` (int64 codeword) in place; returns whether it is now a codeword."""
+def _correct(msg, nsym, budget, erase_pos, exp, log):
+    """Correct ``msg`` (int64 codeword) in place; returns whether it is now a codeword.
+    Corrections with ``2 errors + erasures > budget`` are refused."""
     n = msg.size
     n_erase = erase_pos.size
-    if n_erase > nsym:
+    if n_erase > budget:
         return False
     for p in erase_pos:
         msg[p] = 0
@@ -107,7 +108,7 @@ def _correct(msg, nsym, erase_pos, exp, log):
         first += 1
     err_loc = err_loc[first:]
     n_err = err_loc.size - 1
-    if 2 * n_err + n_erase > nsym:
+    if 2 * n_err + n_erase > budget:
         return False
     # Chien search: the roots of the locator are the error positions.
     rev = err_loc[::-1].copy()
@@ -148,21 +149,22 @@ def _correct(msg, nsym, erase_pos, exp, log):
 
 
 @njit(cache=True)
-def _correct_rows(codewords, erasures, pending, nsym, exp, log):
+def _correct_rows(codewords, erasures, pending, nsym, budget, exp, log):
     ok = np.zeros(codewords.shape[0], dtype=np.bool_)
     for r in range(codewords.shape[0]):
         if not pending[r]:
             continue
         msg = codewords[r].astype(np.int64)
-        if _correct(msg, nsym, np.flatnonzero(erasures[r]), exp, log):
+        if _correct(msg, nsym, budget, np.flatnonzero(erasures[r]), exp, log):
             codewords[r] = msg.astype(np.uint8)
             ok[r] = True
     return ok
 
 
 def correct_rows(
-    codewords: np.ndarray, erasures: np.ndarray, pending: np.ndarray, nsym: int
+    codewords: np.ndarray, erasures: np.ndarray, pending: np.ndarray, nsym: int, budget: int
 ) -> np.ndarray:
     """Correct the ``pending`` rows of (m, n) uint8 ``codewords`` in place, given an (m, n) bool
-    erasure mask; returns an (m,) bool mask of the rows that are now valid codewords."""
-    return _correct_rows(codewords, erasures, pending, nsym, GF_EXP, GF_LOG)
+    erasure mask, spending at most ``budget`` (<= nsym) of ``2 errors + erasures``; returns an
+    (m,) bool mask of the rows that are now valid codewords."""
+    return _correct_rows(codewords, erasures, pending, nsym, budget, GF_EXP, GF_LOG)

@@ -21,6 +21,9 @@ Refresh timeline (60 Hz display):
 reordered or from any starting point, and never return bytes whose sha256 does not match.
 The ``paper`` profile has no header: its decoder needs ``message_size`` and in-order frames
 (see ``occ.paper_codec``).
+
+An empty message is valid: ``paper`` sends one all-black data frame, the framed profiles a
+fountain object holding only the name, size and checksum.
 """
 
 from __future__ import annotations
@@ -61,6 +64,14 @@ def _check_index(k: int) -> None:
 
 
 class StreamEncoder:
+    """The refreshes of one message.
+
+    Attributes: ``geometry`` and ``profile``; ``symbols``, the distinct data frames of one
+    cycle; ``cycle``, the refreshes after which the data part repeats (``frame(k) ==
+    frame(k + cycle)`` for every k past the preamble; always finite, as the fountain's repair
+    symbols are bounded by ``LinkProfile.passes``); ``preamble_length`` in refreshes.
+    """
+
     def __init__(
         self,
         message: bytes,
@@ -93,14 +104,11 @@ class StreamEncoder:
         else:
             self._paper = PaperEncoder(message, cells)
             self.symbols = self._paper.layout.frames
-        """Distinct data frames (symbols) in one cycle."""
-        if self.profile.key_every:
+        if self.profile.key_every:  # whole key groups, the last one wrapping round the symbols
             m = self.profile.key_every
-            self.cycle: int | None = m * math.ceil(self.symbols / (m - 1))
+            self.cycle = m * math.ceil(self.symbols / (m - 1))
         else:
             self.cycle = self.profile.data_every * self.symbols
-        """Refreshes after which the data part repeats: ``frame(k) == frame(k + cycle)`` for
-        every k past the preamble."""
         self._payload_cache: tuple[int, np.ndarray] | None = None
         self._state_cache: tuple[int, np.ndarray] | None = None
 
@@ -188,7 +196,12 @@ class StreamEncoder:
 
 
 class StreamDecoder:
-    """Feed it the bits of data frames; it returns each message once, verified."""
+    """Feed it the bits of data frames; it returns each message once, verified.
+
+    Framed profiles need nothing but ``profile`` and ``cells``; several streams may be in flight
+    at once, told apart by their stream id. ``paper`` frames carry no header, so its decoder
+    also needs ``message_size`` (and ``name`` to report): without it, it decodes nothing.
+    """
 
     def __init__(
         self,
