@@ -22,14 +22,15 @@ CAMERA = CameraModel(346, 260, np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0
 MESSAGE = bytes(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8))
 
 
-def _run(scene: Scene, duration_s: float, message_size: int | None = None):
+def _run(scene: Scene, duration_s: float, message_size: int | None = None, **told):
+    """Decode ``scene``; ``told`` overrides what the receiver is told (cells, profile, ...)."""
     enc = scene.encoder
-    config = ReceiverConfig(
-        CAMERA,
-        cells=enc.geometry.cells,
-        profile=enc.profile.name,
-        refresh_hz=scene.display.refresh_hz,
-    )
+    link = {
+        "cells": enc.geometry.cells,
+        "profile": enc.profile.name,
+        "refresh_hz": scene.display.refresh_hz,
+    }
+    config = ReceiverConfig(scene.camera, **{**link, **told})
     rx = Receiver(config, message_size=message_size)
     log = DecodeLog(rx, FrameTruth(enc, scene.display.refresh_hz, scene.start_refresh))
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
@@ -38,12 +39,21 @@ def _run(scene: Scene, duration_s: float, message_size: int | None = None):
     return log, rec
 
 
-def _scene(profile: str, motion, sensor: str = "ideal", start_refresh: int = 0, **encoder) -> Scene:
+def _scene(
+    profile: str,
+    motion,
+    sensor: str = "ideal",
+    start_refresh: int = 0,
+    cells: int = 16,
+    display: Display | None = None,
+    camera: CameraModel = CAMERA,
+    **encoder,
+) -> Scene:
     return Scene(
-        encoder=StreamEncoder(MESSAGE, profile=profile, cells=16, **encoder),
+        encoder=StreamEncoder(MESSAGE, profile=profile, cells=cells, **encoder),
         marker_size_m=0.272,
-        display=Display(refresh_hz=60.0),
-        camera=CAMERA,
+        display=display or Display(refresh_hz=60.0),
+        camera=camera,
         motion=motion,
         sensor=SensorModel.preset(sensor),
         start_refresh=start_refresh,
@@ -68,6 +78,67 @@ def test_static_paper_profile_locks_in_the_preamble_and_decodes_in_order():
     # Join 1 s before the end of the blink preamble: the paper's receiver needs frames in order.
     scene = _scene("paper", STATIC, start_refresh=300, preamble=True)
     log, _ = _run(scene, 2.0, message_size=len(MESSAGE))
+    assert [m.message.data for m in log.messages] == [MESSAGE]
+
+
+def test_static_fast_profile_reads_toggles_of_both_polarities_byte_exact():
+    log, _ = _run(_scene("fast", STATIC, "gen4-indoor"), 1.0)
+    assert [m.message.data for m in log.messages] == [MESSAGE]
+    assert log.ber is not None and log.ber < 0.01
+    assert log.receiver.stats.losses == 0
+    assert log.frames > 45  # one symbol per refresh since the lock, the buffered ones included
+
+
+# A lens that makes 32 cells about 6 px wide on the small sensor: the paper's cell size.
+CLOSE = StaticMotion(distance_m=0.35, tilt_deg=0.0, roll_deg=0.0)
+
+
+def test_static_robust_at_120_hz_with_32_cells_is_error_free():
+    scene = _scene("robust", CLOSE, "gen4-indoor", cells=32, display=Display(refresh_hz=120.0))
+    log, _ = _run(scene, 1.0)
+    assert log.ber is not None and log.ber < 0.01
+    assert [m.message.data for m in log.messages] == [MESSAGE]
+
+
+@pytest.mark.parametrize(
+    ("told", "why"),
+    [
+        ({"cells": 24}, "check --cells"),  # the inner locator's dashes do not fit 24 cells
+        ({"refresh_hz": 50.0}, "check --refresh-hz"),  # nothing blinks at 25 Hz
+    ],
+)
+def test_wrong_link_settings_are_reported_not_raised(told, why):
+    log, _ = _run(_scene("robust", STATIC, "gen4-indoor"), 1.1, **told)
+    report = log.report()
+    assert not report["locked"] and not report["messages"]
+    assert any(why in reason for reason in report["detection_failures"])
+
+
+def test_wrong_profile_locks_but_never_delivers_a_wrong_message():
+    log, _ = _run(_scene("fast", STATIC, "gen4-indoor"), 1.0, profile="robust")
+    assert log.report()["messages"] == []  # frames fail their CRC: nothing unverified comes out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("profile", "cells", "refresh_hz"),
+    [("paper", 80, 60.0), ("robust", 64, 120.0), ("fast", 32, 240.0)],
+)
+def test_full_size_sensor_decodes(profile, cells, refresh_hz):
+    # The paper's setup: 1280x720 behind its lens, the marker filling the view.
+    display = Display(refresh_hz=refresh_hz, rise_ms=0.5, fall_ms=0.3)  # a gaming LCD's response
+    scene = _scene(
+        profile,
+        StaticMotion(distance_m=0.48),
+        "gen4-indoor",
+        cells=cells,
+        display=display,
+        camera=CameraModel.paper(),
+        start_refresh=300 if profile == "paper" else 0,  # joins the paper's blink preamble
+        preamble=profile == "paper",
+    )
+    log, _ = _run(scene, 1.5, message_size=len(MESSAGE))
+    assert log.ber is not None and log.ber < 0.01
     assert [m.message.data for m in log.messages] == [MESSAGE]
 
 

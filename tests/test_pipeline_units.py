@@ -9,18 +9,23 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from occ.marker import MarkerGeometry
+from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.events import make_events
+from receiver.pipeline.buffer import EventBuffer
 from receiver.pipeline.config import FilterParams, ReceiverConfig
+from receiver.pipeline.decoder import CellReader, FrameClock
 from receiver.pipeline.detector import (
     MarkerNotFound,
     blink_phase,
     check_quadrilateral,
+    locator_band,
     quadrilateral,
 )
 from receiver.pipeline.filters import EventFilter
 from receiver.pipeline.metrics import pose_errors, umeyama
 from receiver.pipeline.pose import project_ideal, refine_pose
+from receiver.pipeline.report import FrameTruth
 from receiver.poses import make_pose
 
 K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
@@ -104,3 +109,59 @@ def test_umeyama_undoes_a_rigid_motion_and_ate_is_zero():
     assert err.ate_rmse_m < 1e-9 and err.rpe_rot_rmse_deg < 1e-6
     with pytest.raises(ValueError, match="at least 3"):
         umeyama(pos[:2], pos[:2])
+
+
+def test_buffer_keeps_columns_with_ideal_coordinates_and_cuts_time_windows():
+    cam = CameraModel(8, 8, K, np.array([-0.1, 0.0, 0.0, 0.0, 0.0]))
+    buf = EventBuffer(cam.undistort_table, keep_us=100)
+    buf.append(make_events([0, 10, 20], [1, 2, 3], [4, 5, 6], [1, -1, 1]))
+    buf.append(make_events([30, 40], [7, 0], [1, 2], [1, 1]))
+    window = buf.between(10, 35)
+    assert window["t"].tolist() == [10, 20, 30] and window["x"].tolist() == [2, 3, 7]
+    assert np.allclose(window["xu"], cam.undistort_table[[5, 6, 1], [2, 3, 7], 0])
+    assert window[window["p"] > 0]["t"].tolist() == [20, 30]
+    buf.append(make_events([300], [0], [0], [1]))  # older chunks fall out of the window
+    assert buf.span == (300, 300)
+
+
+def test_locator_band_is_the_outer_cell_of_the_blinking_square():
+    region = np.zeros((60, 60), np.uint8)
+    region[10:50, 10:50] = 1  # 40 px for a 10-cell locator: 4 px cells
+    band = locator_band(region, locator_side=10)
+    assert band[10, 30] and band[30, 13] and not band[30, 30] and not band[30, 15]
+    assert not band[5, 5]
+
+
+def test_frame_clock_follows_a_slightly_fast_display():
+    clock = FrameClock(first_burst_us=1000.0, frame_us=10_000.0, rows=18)
+    assert not clock.settled
+    for m in range(6):
+        clock.observe(m, 1000.0 + m * 10_010.0, slope_us=50.0)
+    assert clock.settled
+    assert clock.period_us == pytest.approx(10_010.0) and clock.mid(10) == pytest.approx(101_100.0)
+
+
+def test_cells_read_against_the_locator_ring_and_score_its_contrast():
+    config = ReceiverConfig(CameraModel(346, 260, K), cells=8)
+    reader = CellReader(config, first_burst_us=0.0)
+    geo = config.geometry
+    truth = np.random.default_rng(2).integers(0, 2, (8, 8))
+    frame = geo.inner_locator.astype(float) * 12.0 + 0.5  # white ring cells ~12 events/px
+    frame[1:-1, 1:-1] = truth * 9.0 + 0.8  # a bit dimmer payload, a noise floor
+    read = reader._classify(0, frame, 1000)
+    assert np.array_equal(read.bits, truth) and read.locator_score > 0.9
+    absent = reader._classify(0, np.full_like(frame, 0.3), 10)
+    assert absent.locator_score < config.decoder.min_locator_score
+
+
+def test_fast_truth_is_the_toggles_and_key_refreshes_are_not_scored():
+    enc = StreamEncoder(b"toggle" * 20, profile="fast", cells=16)
+    truth = FrameTruth(enc, refresh_hz=60.0)
+    geo = enc.geometry
+    k = 5  # a data refresh: its toggle bits are the symbol
+    assert np.array_equal(truth.sent(k), enc.payload_bits(k))
+    t_us = int((k + 0.5) * 1e6 / 60)
+    assert truth.errors(enc.payload_bits(k), t_us) == 0
+    key = enc.profile.key_every  # the key refresh blanks the payload: toggles but no symbol
+    toggles = geo.payload_of(enc.frame(key - 1))
+    assert truth.errors(toggles, int((key + 0.5) * 1e6 / 60)) is None

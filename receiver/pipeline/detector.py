@@ -4,6 +4,7 @@
    is close to the blink period vote into a heat map; its largest blob is the region of interest.
    The phase of the ROI's positive-event count at the blink frequency (DFT bin ``f * T``, not a
    fixed index) gives the time of the data frames' positive bursts.
+   It is measured on the ON events of the region's outer one-cell band, the locator ring.
 2. *Spatial.* The positive events around those bursts outline the inner locator; its convex
    quadrilateral must pass the paper's criteria (four corners, large, right angles, equal sides).
 3. *Orientation.* The ring of the inner locator (solid "L" at bottom-left, dashed top and right)
@@ -93,30 +94,44 @@ def largest_region(heat: np.ndarray, threshold: float) -> np.ndarray:
     return cv2.convexHull(pts.astype(np.int32)).reshape(-1, 2)
 
 
+@numba.njit(cache=True, nogil=True)
+def _rising_times(t, x, y, p, mask):
+    """Times of the ON events on the pixels of ``mask``."""
+    out = np.empty(t.shape[0], np.int64)
+    k = 0
+    for i in range(t.shape[0]):
+        if p[i] > 0 and mask[y[i], x[i]]:
+            out[k] = t[i]
+            k += 1
+    return out[:k]
+
+
+def locator_band(region: np.ndarray, locator_side: int) -> np.ndarray:
+    """The outer one-cell band of the blinking region: the inner locator ring alone.
+
+    The phase must come from the ring, not the payload: in ``fast``, payload cells whose symbol
+    bit is the same in successive frames (header fields) toggle on every refresh too, in
+    antiphase with the locator after each all-black key refresh."""
+    cell_px = np.sqrt(np.count_nonzero(region)) / locator_side
+    k = 2 * max(1, round(cell_px)) + 1  # erodes one cell from every side
+    inner = cv2.erode(region, np.ones((k, k), np.uint8))
+    return region & (1 - inner)
+
+
 def blink_phase(
-    t_us: np.ndarray,
-    t_start: int,
-    window_us: int,
-    blink_hz: float,
-    polarity: np.ndarray | None = None,
+    t_us: np.ndarray, t_start: int, window_us: int, blink_hz: float
 ) -> tuple[float, float]:
     """(burst time, |X_k| / X_0) of event times at the blink frequency.
-
-    With ``polarity``, the signal is the positive minus the negative count. The paper counts
-    positive events and notes negative ones differ only by half a period; their difference adds
-    both in phase and cancels the ``fast`` profile's payload, which toggles either way at random.
 
     ``X_k`` is bin ``k = f * T`` of the DFT of the event count over the window cut to whole
     blink periods (so the bin sits exactly on ``f``), taken in the limit of infinitely fine count
     bins: a sum over the events themselves, free of bin quantisation."""
     period_us = 1e6 / blink_hz
     span = max(1, int(window_us // period_us)) * period_us
-    inside = (t_us >= t_start) & (t_us < t_start + span)
-    t = t_us[inside] - t_start
-    w = np.ones(len(t)) if polarity is None else np.asarray(polarity[inside], float)
+    t = t_us[(t_us >= t_start) & (t_us < t_start + span)] - t_start
     if not len(t):
         return float("nan"), 0.0
-    x_k = np.sum(w * np.exp(-2j * np.pi * t / period_us))
+    x_k = np.sum(np.exp(-2j * np.pi * t / period_us))
     phase = (2 * np.pi - np.angle(x_k)) % (2 * np.pi)
     return float(t_start + phase / (2 * np.pi) * period_us), float(abs(x_k) / len(t))
 
@@ -171,7 +186,10 @@ def orient(
     cells, white = ring_cells(geometry)
     canonical = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float64)
     centres = (cells + 0.5).reshape(-1, 1, 2)
-    blurred = cv2.blur(burst.astype(np.float32), (3, 3))
+    # Average over at most half a cell, so that small cells do not blur into their neighbours.
+    cell_px = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).mean() / n
+    k = max(1, int(cell_px / 2) | 1)
+    blurred = cv2.blur(burst.astype(np.float32), (k, k))
     best = (-np.inf, quad)
     for r in range(4):
         corners = np.roll(quad, -r, axis=0)
@@ -185,20 +203,37 @@ def orient(
     return best[1], float(best[0])
 
 
+@numba.njit(cache=True, nogil=True)
+def _pixel_harmonics(t, x, y, p, height, width, period_us):
+    """Per pixel: the ON events' DFT at the blink frequency (re, im) and their count."""
+    acc = np.zeros((3, height, width))
+    w = 2 * np.pi / period_us
+    for i in range(t.shape[0]):
+        if p[i] > 0:
+            a = w * t[i]
+            acc[0, y[i], x[i]] += np.cos(a)
+            acc[1, y[i], x[i]] -= np.sin(a)
+            acc[2, y[i], x[i]] += 1.0
+    return acc
+
+
 def burst_image(
     events: np.ndarray, burst_us: float, period_us: float, shape: tuple[int, int], periods: int = 3
 ) -> np.ndarray:
-    """Boolean image of the pixels that brighten at the bursts of the last ``periods`` blinks.
+    """Boolean image of the pixels that brighten in step with the bursts of the last
+    ``periods`` blinks.
 
-    A pixel counts when it has more positive events in the half period around a burst than in
-    the other half: blinking cells do, while edges swept by camera motion brighten at any time."""
-    pos = events[events["p"] > 0]
-    pos = pos[pos["t"] >= pos["t"][-1] - periods * period_us] if len(pos) else pos
-    phase = (pos["t"] - burst_us) % period_us
-    weight = np.where(np.minimum(phase, period_us - phase) <= period_us / 4, 1, -1)
-    flat = pos["y"].astype(np.int64) * shape[1] + pos["x"]
-    excess = np.bincount(flat, weights=weight, minlength=shape[0] * shape[1])
-    return excess.reshape(shape) > 0
+    A pixel counts when its ON events keep one phase (harmonic ratio >= 0.5) close to the burst's:
+    within 0.3 period, because the display's scan-out spreads the rows' bursts over about 0.45
+    period and the pixel response delays them further, while cells blinking in antiphase sit
+    half a period away. Edges swept by camera motion fire at any phase."""
+    recent = events[int(np.searchsorted(events["t"], events["t"][-1] - periods * period_us)) :]
+    re, im, count = _pixel_harmonics(
+        recent["t"], recent["x"], recent["y"], recent["p"], *shape, period_us
+    )
+    amplitude = np.hypot(re, im)
+    lag = np.angle((re + 1j * im) * np.exp(2j * np.pi * burst_us / period_us))
+    return (count >= 2) & (amplitude >= 0.5 * count) & (np.abs(lag) <= 0.3 * 2 * np.pi)
 
 
 def detect(events: np.ndarray, config: ReceiverConfig) -> Detection:
@@ -210,10 +245,11 @@ def detect(events: np.ndarray, config: ReceiverConfig) -> Detection:
     hull = largest_region(heat, params.heat_threshold)
     mask = np.zeros((cam.height, cam.width), np.uint8)
     cv2.fillConvexPoly(mask, hull.astype(np.int32), 1)
-    roi = events[mask[events["y"], events["x"]] > 0]
+    band = locator_band(mask, config.geometry.locator_side)
+    rising = _rising_times(events["t"], events["x"], events["y"], events["p"], band)
     t_start = int(events["t"][0])
     window = int(events["t"][-1]) - t_start
-    burst, ratio = blink_phase(roi["t"], t_start, window, config.blink_hz, roi["p"])
+    burst, ratio = blink_phase(rising, t_start, window, config.blink_hz)
     if not ratio >= params.min_harmonic_ratio:
         raise MarkerNotFound(
             f"temporal: the blinking region does not pulse at {config.blink_hz:g} "

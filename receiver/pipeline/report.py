@@ -25,20 +25,34 @@ from receiver.poses import write_tum
 
 
 class FrameTruth:
-    """The bits the screen showed around a time, for BER (receiver frame indices are relative,
-    so each read frame is matched to the closest of the data refreshes near its time)."""
+    """What the screen sent around a time, for BER. Receiver frame indices are relative, so each
+    read frame is matched to the closest of the refreshes near its time; frames matched to a
+    refresh that carries no symbol (``fast``'s key refreshes) are not scored."""
 
     def __init__(self, encoder, refresh_hz: float, start_refresh: int = 0) -> None:
         self.encoder = encoder
         self.refresh_hz = refresh_hz
         self.start_refresh = start_refresh
 
-    def errors(self, bits: np.ndarray, t_us: int) -> int:
+    def sent(self, k: int) -> np.ndarray:
+        """The bits a receiver reads at refresh ``k``: the payload shown, or for ``fast`` the
+        cells that toggled (every refresh, key refreshes included)."""
+        enc = self.encoder
+        shown = enc.geometry.payload_of(enc.frame(k))
+        if enc.profile.data_every == 1:
+            return shown ^ enc.geometry.payload_of(enc.frame(k - 1))
+        return shown
+
+    def errors(self, bits: np.ndarray, t_us: int) -> int | None:
+        """Bit errors of a frame read at ``t_us``, or None if it matches no data refresh."""
         k = self.start_refresh + int(np.floor(t_us * self.refresh_hz / 1e6))
-        ks = [j for j in range(max(0, k - 2), k + 2) if self.encoder.is_data_frame(j)]
+        ks = list(range(max(1, k - 2), k + 2))
+        if self.encoder.profile.data_every == 2:
+            ks = [j for j in ks if self.encoder.is_data_frame(j)]
         if not ks:
-            return bits.size
-        return best_alignment(bits, [self.encoder.payload_bits(j) for j in ks])[1]
+            return None
+        i, errors = best_alignment(bits, [self.sent(j) for j in ks])
+        return errors if self.encoder.is_data_frame(ks[i]) else None
 
 
 class DecodeLog:
@@ -60,9 +74,10 @@ class DecodeLog:
                 self.poses.append(o.T_world_cam)
             elif isinstance(o, FrameOutput) and o.accepted:
                 self.frames += 1
-                if self.truth is not None:
+                errors = None if self.truth is None else self.truth.errors(o.read.bits, o.read.t_us)
+                if errors is not None:
                     self.bits += o.read.bits.size
-                    self.bit_errors += self.truth.errors(o.read.bits, o.read.t_us)
+                    self.bit_errors += errors
             elif isinstance(o, MessageOutput):
                 self.messages.append(o)
             elif isinstance(o, StateChange):
