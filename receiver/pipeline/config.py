@@ -56,6 +56,15 @@ class TrackerParams:
     """Cluster slots per pixel of edge length."""
     min_update_interval_us: int = 250
     """At most one pose update per interval (the authors' 4 kHz tick)."""
+    max_update_interval_us: int = 1000
+    """At least one pose update per interval while new events join the clusters, even if no
+    indicator fired (the 1 kHz pose-rate target holds under slow motion too)."""
+    capture_us: int = 5000
+    """Recent events used to pull a detected pose onto the ring's edges."""
+    fit_min_events: int = 400
+    """Events near the edges needed before their on-edge share (the fit ratio) is judged."""
+    min_fit_ratio: float = 0.5
+    """Below this on-edge share the pose has slipped off the marker: tracking is lost."""
     max_age_us: int = 30_000
     """Slots older than this are stale and leave the cluster."""
     huber_px: float = 1.0

@@ -18,18 +18,21 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from occ.stream import ReceivedMessage, StreamDecoder
-from receiver.pipeline.buffer import EventBuffer
+from receiver.pipeline.buffer import EventBuffer, to_columns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.decoder import CellReader, FrameRead
 from receiver.pipeline.detector import MarkerNotFound, detect
 from receiver.pipeline.filters import EventFilter
 from receiver.pipeline.pose import pnp, project_ideal
 from receiver.pipeline.tracker import EdgeTracker
+from receiver.pipeline.triage import EventTriage
 from receiver.poses import invert
 
 log = logging.getLogger(__name__)
 
 DETECTING, TRACKING = "detecting", "tracking"
+_SEGMENT_US = 2000
+"""Longest stretch of events triaged with one tracker mask: the edges move little meanwhile."""
 
 
 @dataclass(frozen=True)
@@ -86,7 +89,8 @@ class Receiver:
         )
         self._filter = EventFilter(config.filters, cam.width, cam.height)
         keep = config.detector.window_us + 4 * int(config.frame_us)
-        self._buffer = EventBuffer(cam.undistort_table, keep)
+        self._buffer = EventBuffer(keep)
+        self._triage: EventTriage | None = None
         self._next_attempt_us: int | None = None
         self._tracker: EdgeTracker | None = None
         self._reader: CellReader | None = None
@@ -105,18 +109,17 @@ class Receiver:
         st.last_event_us = int(chunk["t"][-1])
         st.events += len(chunk)
         with self._cpu("filter"):
-            events = self._buffer.append(self._filter(chunk))
+            events = self._filter(chunk)
+            self._buffer.append(events)
         if not len(events):
             return []
         out: list[Output] = []
         if self.state == DETECTING:
             out += self._try_detect(int(events["t"][-1]))
-            if self.state == TRACKING:  # track only what arrived after the detection window
+            if self.state == TRACKING:  # the lock read the buffered events already
                 events = events[:0]
         if self.state == TRACKING:
-            out += self._track(events)
-        if self.state == TRACKING:
-            out += self._decode(int(events["t"][-1]) if len(events) else st.last_event_us)
+            out += self._follow(events)
         return out
 
     def finish(self) -> list[Output]:
@@ -151,15 +154,59 @@ class Receiver:
                 self.stats.detection_failures[str(exc)] += 1
                 log.debug("detection at %d us: %s", now, exc)
                 return []
-        self._tracker = EdgeTracker(self.config, T)
+        self._tracker = EdgeTracker(self.config, T, now)
+        with self._cpu("track"):  # under motion the detected corners lag: snap to the ring
+            recent = self._buffer.between(now - self.config.tracker.capture_us, now + 1)
+            recent = to_columns(recent, self.config.camera.undistort_table)
+            if self._tracker.capture(recent["xu"], recent["yu"], now):
+                T = self._tracker.T_cam_world
         self._reader = CellReader(self.config, found.burst_us)
+        gap_us = self.config.refresh_us / 2
+        self._triage = EventTriage(self.config.camera.undistort_table, gap_us)
         # Frames inside the detection window are still buffered: read them too.
         self._next_frame = -int(window // self.config.frame_us) + 1
         self._missed = 0
         self._pose_t, self._pose_T = [now], [T]
         self.state = TRACKING
         self.stats.lock_times_us.append(now)
-        return [StateChange(now, TRACKING, "marker detected"), self._pose_output(now, T)]
+        out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
+        out.append(self._pose_output(now, T))
+        first = self._reader.window(self._next_frame)[0] - int(gap_us)
+        return out + self._follow(self._buffer.between(first, now + 1), track=False)
+
+    def _follow(self, events: np.ndarray, track: bool = True) -> list[Output]:
+        """Triage ``events`` in short segments, cut where a frame's time span ends, so that each
+        frame is read as soon as its pixels' bursts are complete (and before the next ones)."""
+        out: list[Output] = []
+        while self.state == TRACKING and len(events):
+            end = self._reader.window(self._next_frame)[1]
+            first = int(events["t"][0])
+            if first >= end:  # the frame's bursts are complete
+                out += self._decode(end)
+                continue
+            cut = max(1, int(np.searchsorted(events["t"], min(end, first + _SEGMENT_US))))
+            with self._cpu("triage"):
+                if track:
+                    self._select_near_edges()
+                near = self._triage(events[:cut])
+            if track:
+                out += self._track(near)
+            events = events[cut:]
+        return out
+
+    def _select_near_edges(self) -> None:
+        """Show the tracker only the events near its edges: within its gate, its fit band (one
+        ring width) and the motion of one segment."""
+        tracker = self._tracker
+        edges = project_ideal(tracker.T_cam_world, self.config.camera.K, tracker.edges_world)
+        if not np.all(np.isfinite(edges)):
+            return
+        geo = self.config.geometry
+        ring_m = geo.ring * geo.cell_size_m(self.config.marker_size_m)
+        length_m = np.linalg.norm(tracker.edges_world[:, 1] - tracker.edges_world[:, 0], axis=1)
+        ring_px = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1) * ring_m / length_m
+        reach = self.config.tracker.gate_px + float(ring_px.max()) + 4.0
+        self._triage.track_near(edges[:, 0], edges[:, 1], reach)
 
     def _lose(self, now: int, reason: str) -> list[Output]:
         log.info("tracking lost at %d us: %s", now, reason)
@@ -173,7 +220,10 @@ class Receiver:
         out: list[Output] = []
         if len(events):
             with self._cpu("track"):
-                updates = self._tracker.push(events["xu"], events["yu"], events["t"])
+                try:
+                    updates = self._tracker.push(events["xu"], events["yu"], events["t"])
+                except ValueError as exc:  # the pose put the marker behind the camera
+                    return out + self._lose(int(events["t"][-1]), str(exc))
             for u in updates:
                 self.stats.pose_updates += 1
                 self._pose_t.append(u.t_us)
@@ -182,7 +232,7 @@ class Receiver:
             now = int(events["t"][-1])
             if now - self._last_pose_out >= self.config.pose_interval_us:
                 out.append(self._pose_output(now, self._tracker.T_cam_world))
-            reason = self._out_of_view(self._tracker.T_cam_world)
+            reason = self._out_of_view(self._tracker.T_cam_world) or self._off_edges()
             if reason:
                 return out + self._lose(now, reason)
         self._trim_poses()
@@ -198,6 +248,12 @@ class Receiver:
             return "marker left the field of view"
         return None
 
+    def _off_edges(self) -> str | None:
+        ratio = self._tracker.fit_ratio
+        if ratio is not None and ratio < self.config.tracker.min_fit_ratio:
+            return f"only {ratio:.0%} of the events near the ring lie on its edges"
+        return None
+
     def _decode(self, now: int) -> list[Output]:
         out: list[Output] = []
         reader = self._reader
@@ -207,8 +263,9 @@ class Receiver:
             self._next_frame += 1
             with self._cpu("decode"):
                 t0, t1 = reader.window(m)
-                events = self._buffer.between(t0, t1)
-                read = reader.read(m, events, self.pose_at)
+                box = reader.box(self.pose_at((t0 + t1) / 2))
+                bursts = self._triage.bursts(t0, t1, box, reader.both_polarities)
+                read = reader.read(m, bursts, self.pose_at)
             self.stats.frames_read += 1
             seen = read.locator_score >= q.min_locator_score
             out.append(FrameOutput(read, seen))

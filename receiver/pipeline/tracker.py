@@ -4,8 +4,14 @@ asynchronous pose updates.
 Each event (ideal pixel coordinates) joins every edge within the gate; an edge is cut into
 ``alpha * length`` bins that each keep their newest event, so a cluster stays spread along its
 edge. An edge's latency indicator is the mean distance of its cluster; when more than one edge's
-indicator exceeds half the gate, the pose is re-solved (``pose.refine_pose``), the edges are
-re-projected and the clusters re-binned, dropping events now beyond the gate or too old.
+indicator exceeds half the gate, or ``max_update_interval_us`` has passed, the pose is re-solved
+(``pose.refine_pose``), the edges are re-projected and the clusters re-binned, dropping events
+now beyond the gate or too old.
+
+Unlike the authors' tracker, this one also says when it is wrong: events in a band one ring wide
+around the edges should lie on the edges; when most of them do not, the pose has slipped (see
+``EdgeTracker.fit_ratio``). And a pose from detection is first pulled onto the ring's edges with
+shrinking gates (``EdgeTracker.capture``), since a detection under motion is a few pixels off.
 """
 
 from __future__ import annotations
@@ -23,25 +29,59 @@ _MIN_FILL = 0.25
 fills a cluster)."""
 _MIN_EDGES = 4
 """Edges with enough fresh events for a pose solve: four lines fix a plane's pose."""
+_CAPTURE_GATES = (2.0, 1.0, 0.0)
+"""Gates of the capture passes in ring widths (0: the tracking gates). Each event counts for its
+nearest edge only, so the ring's two sides stay apart, and never from deeper than ``_LOCATOR_GAP``
+inside the inner edges, where the blinking inner locator begins one ring further in."""
+_LOCATOR_GAP = 0.6
+_CAPTURE_MIN_EVENTS = 50
+_FORCE_MIN_NEW = 16
+"""Events that must have joined the clusters before a timed (not indicator-driven) update."""
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _to_segment(px, py, ax, ay, bx, by):
+    """(distance, position along the segment in 0..1) of point p to segment ab."""
+    dx, dy = bx - ax, by - ay
+    L2 = dx * dx + dy * dy
+    w = ((px - ax) * dx + (py - ay) * dy) / L2 if L2 > 0 else 0.0
+    w = min(max(w, 0.0), 1.0)
+    ex, ey = ax + w * dx - px, ay + w * dy - py
+    return np.sqrt(ex * ex + ey * ey), w
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_edge(xu, yu, a, b):
+    """Distance to, and index of, the nearest projected edge of every point."""
+    n = xu.shape[0]
+    dist, edge = np.full(n, np.inf), np.zeros(n, np.int64)
+    for i in range(n):
+        for e in range(a.shape[0]):
+            d, _ = _to_segment(xu[i], yu[i], a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+            if d < dist[i]:
+                dist[i], edge[i] = d, e
+    return dist, edge
 
 
 @numba.njit(cache=True, nogil=True)
 def _assign(
-    xu, yu, t, start, a, b, gate, cap, sx, sy, st, sd, sum_d, n_valid, earliest_update_us, min_fill
+    xu, yu, t, start, a, b, gate, band, cap, sx, sy, st, sd, sum_d, n_valid, fit, due_us,
+    force_us, min_fill,
 ):
-    """Add events ``start..`` to the clusters; stop after the first event that makes more than
-    one indicator exceed half its gate. Returns (index to resume from, whether it stopped)."""
+    """Add events ``start..`` to the clusters and count, in ``fit``, events in the band around
+    the edges, those of them on an edge, and events on an edge since the last update. Stop after
+    the first event that makes more than one indicator exceed half its gate (at or after
+    ``due_us``), or at ``force_us`` once new events joined. Returns (index to resume from,
+    whether it stopped)."""
     for i in range(start, t.shape[0]):
         px, py = xu[i], yu[i]
+        near, on = False, False
         for e in range(a.shape[0]):
-            dx, dy = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
-            L2 = dx * dx + dy * dy
-            w = ((px - a[e, 0]) * dx + (py - a[e, 1]) * dy) / L2 if L2 > 0 else 0.0
-            w = min(max(w, 0.0), 1.0)
-            ex, ey = a[e, 0] + w * dx - px, a[e, 1] + w * dy - py
-            d = np.sqrt(ex * ex + ey * ey)
+            d, w = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+            near = near or d <= band[e]
             if d > gate[e]:
                 continue
+            on = True
             s = min(int(w * cap[e]), cap[e] - 1)
             if st[e, s] >= 0:
                 sum_d[e] -= sd[e, s]
@@ -49,7 +89,13 @@ def _assign(
                 n_valid[e] += 1
             sx[e, s], sy[e, s], st[e, s], sd[e, s] = px, py, t[i], d
             sum_d[e] += d
-        if t[i] >= earliest_update_us:
+        if near:
+            fit[0] += 1
+            fit[1] += on
+        fit[2] += on
+        if t[i] >= force_us and fit[2] >= _FORCE_MIN_NEW:
+            return i + 1, True
+        if t[i] >= due_us:
             late = 0
             for e in range(a.shape[0]):
                 if (
@@ -73,33 +119,35 @@ class TrackUpdate:
 class EdgeTracker:
     """Clusters + pose for one tracking session (created at each (re-)detection)."""
 
-    def __init__(self, config: ReceiverConfig, T_cam_world: np.ndarray) -> None:
+    def __init__(self, config: ReceiverConfig, T_cam_world: np.ndarray, now_us: int = 0) -> None:
         self.config = config
         geo = config.geometry
         self.edges_world = geo.tracked_edges(config.marker_size_m)
         self._ring_m = geo.ring * geo.cell_size_m(config.marker_size_m)
         self.K = config.camera.K
         self.T_cam_world = T_cam_world
-        self.last_update_us = -(1 << 62)
-        self._last_rebin_us = 0
+        self.last_update_us = now_us
+        self._last_rebin_us = now_us
         self._slots = None
-        self._rebin(T_cam_world, now_us=0)
+        self._fit = np.zeros(3, np.int64)
+        self.fit_ratio: float | None = None
+        """Share of the latest band events that lie on an edge; None until enough were seen."""
+        self._rebin(T_cam_world, now_us)
 
     # --- geometry of the current pose ----------------------------------------------------------
     def _project_edges(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         px = project_ideal(T, self.K, self.edges_world)  # (8, 2, 2)
         return np.ascontiguousarray(px[:, 0]), np.ascontiguousarray(px[:, 1])
 
-    def _gates(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def _ring_px(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Width of the white ring in the image along each edge."""
+        world_len = np.linalg.norm(self.edges_world[:, 1] - self.edges_world[:, 0], axis=1)
+        return np.linalg.norm(b - a, axis=1) * self._ring_m / world_len
+
+    def _gates(self, ring_px: np.ndarray) -> np.ndarray:
         """theta_d, narrowed where the ring is thin in the image so that the blinking inner
         locator (one ring width inside the inner edges) never feeds a cluster."""
-        length = np.linalg.norm(b - a, axis=1)
-        ring_px = (
-            length
-            * self._ring_m
-            / np.linalg.norm(self.edges_world[:, 1] - self.edges_world[:, 0], axis=1)
-        )
-        share = np.where(np.arange(len(a)) < 4, 0.45, 0.3)  # inner edges: 1 ring from the locator
+        share = np.where(np.arange(len(ring_px)) < 4, 0.45, 0.3)  # inner edges: near the locator
         return np.minimum(self.config.tracker.gate_px, share * ring_px)
 
     def _rebin(self, T: np.ndarray, now_us: int) -> None:
@@ -114,34 +162,63 @@ class EdgeTracker:
         sx, sy = np.zeros((8, width)), np.zeros((8, width))
         st, sd = np.full((8, width), -1, np.int64), np.zeros((8, width))
         self._slots = (sx, sy, st, sd, np.zeros(8), np.zeros(8, np.int64))
-        self._a, self._b, self._gate, self._cap = a, b, self._gates(a, b), cap
+        ring_px = self._ring_px(a, b)
+        self._a, self._b, self._cap = a, b, cap
+        self._gate, self._band = self._gates(ring_px), ring_px
         self._last_rebin_us = now_us
         if old is None:
             return
         valid = old[2] >= max(0, now_us - self.config.tracker.max_age_us)
         order = np.argsort(old[2][valid], kind="stable")  # oldest first: newest wins its bin
         ex, ey, et = old[0][valid][order], old[1][valid][order], old[2][valid][order]
+        on_edge = np.nonzero(valid)[0][order]
+        unused = np.zeros(3, np.int64)  # re-binned events were counted in the fit already
         for e in range(8):  # re-assign per edge so an event keeps only the edge it was on
-            on = np.nonzero(valid)[0][order] == e
+            on = on_edge == e
             if np.any(on):
+                one = slice(e, e + 1)
                 _assign(
-                    ex[on],
-                    ey[on],
-                    et[on],
-                    0,
-                    a[e : e + 1],
-                    b[e : e + 1],
-                    self._gate[e : e + 1],
-                    cap[e : e + 1],
-                    sx[e : e + 1],
-                    sy[e : e + 1],
-                    st[e : e + 1],
-                    sd[e : e + 1],
-                    self._slots[4][e : e + 1],
-                    self._slots[5][e : e + 1],
-                    1 << 62,
-                    _MIN_FILL,
+                    ex[on], ey[on], et[on], 0, a[one], b[one], self._gate[one], self._band[one],
+                    cap[one], sx[one], sy[one], st[one], sd[one], self._slots[4][one],
+                    self._slots[5][one], unused, 1 << 62, 1 << 62, _MIN_FILL,
                 )
+
+    # --- start ---------------------------------------------------------------------------------
+    def capture(self, xu: np.ndarray, yu: np.ndarray, now_us: int) -> bool:
+        """Pull the pose onto recent events of the ring's edges (from within about one ring width
+        of them), in passes of shrinking gates. Returns False, keeping the pose, when the edges
+        have too few events (a still camera: then the detection itself is accurate)."""
+        q = self.config.tracker
+        T = self.T_cam_world
+        for scale in _CAPTURE_GATES:
+            a, b = self._project_edges(T)
+            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+                return False
+            dist, edge = _nearest_edge(xu.astype(np.float64), yu.astype(np.float64), a, b)
+            ring_px = self._ring_px(a, b)
+            gate = scale * ring_px if scale else self._gates(ring_px)
+            near = dist <= gate[edge]
+            near &= (edge < 4) | (dist <= _LOCATOR_GAP * ring_px[edge]) | ~self._inside(
+                xu, yu, a, b, edge
+            )
+            if np.count_nonzero(near) < _CAPTURE_MIN_EVENTS or len(np.unique(edge[near])) < 4:
+                return False
+            pts = np.stack([xu[near], yu[near]], 1)
+            T, _ = refine_pose(T, self.K, pts, edge[near], self.edges_world, q.huber_px,
+                               q.max_iterations)
+        self.T_cam_world = T
+        self._slots = None  # clusters of the old pose are meaningless
+        self._rebin(T, now_us)
+        return True
+
+    @staticmethod
+    def _inside(xu, yu, a, b, edge) -> np.ndarray:
+        """Whether each point lies on the marker's centre side of its edge's line."""
+        centre = a.mean(axis=0)
+        d = b[edge] - a[edge]
+        side = d[:, 0] * (yu - a[edge, 1]) - d[:, 1] * (xu - a[edge, 0])
+        ref = d[:, 0] * (centre[1] - a[edge, 1]) - d[:, 1] * (centre[0] - a[edge, 0])
+        return side * ref > 0
 
     # --- streaming -----------------------------------------------------------------------------
     def push(self, xu: np.ndarray, yu: np.ndarray, t: np.ndarray) -> list[TrackUpdate]:
@@ -152,21 +229,10 @@ class EdgeTracker:
         while start < len(t):
             sx, sy, st, sd, sum_d, n_valid = self._slots
             stop, due = _assign(
-                xu,
-                yu,
-                t,
-                start,
-                self._a,
-                self._b,
-                self._gate,
-                self._cap,
-                sx,
-                sy,
-                st,
-                sd,
-                sum_d,
-                n_valid,
+                xu, yu, t, start, self._a, self._b, self._gate, self._band, self._cap,
+                sx, sy, st, sd, sum_d, n_valid, self._fit,
                 self.last_update_us + q.min_update_interval_us,
+                self.last_update_us + q.max_update_interval_us,
                 _MIN_FILL,
             )
             now = int(t[stop - 1])
@@ -177,16 +243,20 @@ class EdgeTracker:
             elif now - self._last_rebin_us >= q.max_age_us // 2:
                 self._rebin(self.T_cam_world, now)  # age stale slots out of the indicators
             start = stop
+        if self._fit[0] >= q.fit_min_events:
+            self.fit_ratio = float(self._fit[1] / self._fit[0])
+            self._fit[:2] = 0
         return updates
 
     def _update(self, now_us: int) -> TrackUpdate | None:
         """Re-solve the pose, unless too few edges hold fresh events (sensor noise alone must not
         move a camera that stands still)."""
         sx, sy, st, _, _, _ = self._slots
-        fresh = st >= now_us - self.config.tracker.max_age_us
+        self.last_update_us = now_us
+        self._fit[2] = 0
+        fresh = st >= max(0, now_us - self.config.tracker.max_age_us)  # -1: empty bin
         supported = fresh.sum(axis=1) >= np.maximum(3, _MIN_FILL * self._cap)
         if supported.sum() < _MIN_EDGES:
-            self.last_update_us = now_us
             self._rebin(self.T_cam_world, now_us)
             return None
         edge = np.nonzero(fresh)[0]
@@ -201,6 +271,5 @@ class EdgeTracker:
             self.config.tracker.max_iterations,
         )
         self.T_cam_world = T
-        self.last_update_us = now_us
         self._rebin(T, now_us)
         return TrackUpdate(now_us, T, cost, len(edge))

@@ -1,0 +1,176 @@
+"""Edge tracking, pose capture, loss and re-acquisition: unit tests on synthetic edge events, and
+runs on the virtual event camera against its ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from occ.stream import StreamEncoder
+from receiver.camera import CameraModel
+from receiver.pipeline.config import ReceiverConfig
+from receiver.pipeline.metrics import pose_errors
+from receiver.pipeline.receiver import DETECTING, TRACKING, Receiver
+from receiver.pipeline.report import DecodeLog, FrameTruth
+from receiver.pipeline.tracker import EdgeTracker, _nearest_edge
+from receiver.poses import invert, make_pose, write_tum
+from receiver.sim import Display, Scene, SensorModel, TumMotion, simulate
+from receiver.sim.motion import look_at
+
+K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
+CAMERA = CameraModel(346, 260, K)
+SIZE = 0.272
+CONFIG = ReceiverConfig(CAMERA)
+CENTRE = np.array([SIZE / 2, SIZE / 2, 0.0])
+MESSAGE = bytes(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8))
+
+
+def _view(distance=0.6, tilt=0.0, elevation=0.0, roll=0.0, shift=(0.0, 0.0)) -> np.ndarray:
+    """T_world_cam looking at the marker centre, optionally shifted sideways in camera axes."""
+    T = look_at(CENTRE, distance, tilt, elevation, roll)
+    T[:3, 3] += T[:3, :2] @ np.asarray(shift, float)
+    return T
+
+
+def _nudge(T_cam_world: np.ndarray, deg: float, metres: float) -> np.ndarray:
+    R = Rotation.from_euler("xyz", [deg, -deg, deg], degrees=True).as_matrix()
+    return make_pose(R, [metres, -metres, metres]) @ T_cam_world
+
+
+def _edge_events(T_cam_world, t0_us, n_per_edge=60, offset_px=0.0, seed=0):
+    """Events spread along the 8 projected ring edges (optionally pushed ``offset_px`` off them,
+    along the edge normal), time-sorted over 1 ms from ``t0_us``."""
+    rng = np.random.default_rng(seed)
+    edges = CONFIG.geometry.tracked_edges(SIZE)
+    s = rng.uniform(0.05, 0.95, (8, n_per_edge, 1))
+    world = edges[:, :1] + s * (edges[:, 1:] - edges[:, :1])
+    px = (CAMERA.project(world.reshape(-1, 3) @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]))
+    d = np.repeat(edges[:, 1, :2] - edges[:, 0, :2], n_per_edge, axis=0)
+    normal = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
+    px = px + offset_px * normal * rng.choice([-1, 1], (len(px), 1))
+    order = rng.permutation(len(px))
+    t = t0_us + np.sort(rng.integers(0, 1000, len(px)))
+    return px[order, 0], px[order, 1], t
+
+
+def _position_error(T_cam_world, T_true) -> float:
+    return float(np.linalg.norm(invert(T_cam_world)[:3, 3] - invert(T_true)[:3, 3]))
+
+
+# --- tracker units ---------------------------------------------------------------------------
+def test_events_on_the_projected_edges_pull_the_pose_to_the_truth():
+    truth = invert(_view(tilt=8, roll=5))
+    tracker = EdgeTracker(CONFIG, _nudge(truth, 0.2, 0.003))
+    start = _position_error(tracker.T_cam_world, truth)
+    updates = []
+    for k in range(10):
+        updates += tracker.push(*_edge_events(truth, 1000 * k, seed=k))
+    assert updates, "events off the predicted edges must trigger pose updates"
+    assert _position_error(tracker.T_cam_world, truth) < 0.2 * start
+    assert tracker.fit_ratio is not None and tracker.fit_ratio > 0.9
+
+
+def test_noise_far_from_the_edges_leaves_the_pose_alone():
+    truth = invert(_view())
+    tracker = EdgeTracker(CONFIG, truth.copy())
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(0, 346, 20_000), rng.uniform(0, 260, 20_000)
+    a, b = tracker._project_edges(truth)  # keep only points well away from every edge
+    far = _nearest_edge(x, y, a, b)[0] > 8
+    t = np.sort(rng.integers(0, 50_000, np.count_nonzero(far)))
+    assert tracker.push(x[far], y[far], t) == []
+    assert np.allclose(tracker.T_cam_world, truth)
+
+
+def test_stale_cluster_events_age_out():
+    truth = invert(_view(tilt=5))
+    late_us = CONFIG.tracker.max_age_us + 20_000
+    results = {}
+    for gap_us in (3000, late_us):
+        tracker = EdgeTracker(CONFIG, truth.copy())
+        tracker.push(*_edge_events(truth, 0))
+        x, y, t = _edge_events(_nudge(truth, 0.1, 0.002), gap_us, n_per_edge=40, seed=2)
+        few = np.isin(np.arange(len(x)) % 8, [0, 1])  # only two edges get new events
+        results[gap_us] = tracker.push(x[few], y[few], t[few])
+    # With fresh clusters on the other edges the pose is solvable; once they are stale it is not.
+    assert results[3000] and not results[late_us]
+
+
+def test_capture_snaps_a_lagging_pose_onto_the_ring_and_needs_events():
+    truth = invert(_view(tilt=-6, elevation=4))
+    tracker = EdgeTracker(CONFIG, _nudge(truth, 0.2, 0.003))  # ~1.5 px off (beyond ~3 px the
+    x, y, _ = _edge_events(truth, 0, n_per_edge=80)  # ring's two sides can swap: a known limit)
+
+    def misfit_px() -> float:  # mean distance of the events to the projected edges
+        return float(_nearest_edge(x, y, *tracker._project_edges(tracker.T_cam_world))[0].mean())
+
+    before = misfit_px()
+    assert before > 1.0
+    assert tracker.capture(x, y, now_us=1000)
+    assert misfit_px() < 0.1
+    still = EdgeTracker(CONFIG, truth.copy())
+    assert not still.capture(x[:10], y[:10], now_us=1000)  # a still camera: keep the detection
+    assert np.allclose(still.T_cam_world, truth)
+
+
+def test_fit_ratio_drops_when_events_miss_the_edges():
+    truth = invert(_view())
+    tracker = EdgeTracker(CONFIG, truth.copy())
+    tracker.push(*_edge_events(truth, 0, n_per_edge=100))
+    assert tracker.fit_ratio > 0.9
+    ring_px = tracker._ring_px(*tracker._project_edges(truth)).min()
+    tracker.push(*_edge_events(truth, 2000, n_per_edge=100, offset_px=0.8 * ring_px, seed=3))
+    assert tracker.fit_ratio < CONFIG.tracker.min_fit_ratio
+
+
+# --- on the virtual camera -------------------------------------------------------------------
+def _tum(tmp_path, keys: list[tuple[float, np.ndarray]]) -> TumMotion:
+    path = tmp_path / "motion.tum"
+    write_tum(path, np.array([int(t * 1e6) for t, _ in keys]), np.array([T for _, T in keys]))
+    return TumMotion(str(path))
+
+
+def _run(tmp_path, keys, duration_s: float):
+    scene = Scene(
+        encoder=StreamEncoder(MESSAGE, profile="robust", cells=16),
+        marker_size_m=SIZE,
+        display=Display(refresh_hz=60.0),
+        camera=CAMERA,
+        motion=_tum(tmp_path, keys),
+        sensor=SensorModel.preset("gen4-indoor"),
+        seed=0,
+    )
+    rx = Receiver(ReceiverConfig(CAMERA))
+    log = DecodeLog(rx, FrameTruth(scene.encoder, 60.0))
+    rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
+    for chunk in rec:
+        log.add(rx.push(chunk))
+    return log, rec
+
+
+def test_marker_leaving_the_view_is_lost_then_reacquired_and_the_message_completes(tmp_path):
+    home, away = _view(tilt=3), _view(tilt=3, shift=(0.6, 0.0))  # 0.6 m sideways: out of view
+    keys = [(0.0, home), (0.62, home), (0.64, away), (0.9, away), (0.92, home), (2.2, home)]
+    log, _ = _run(tmp_path, keys, 2.2)
+    states = [(s.state, s.reason) for s in log.states]
+    assert states[0][0] == TRACKING
+    lost = [r for s, r in states if s == DETECTING]
+    assert lost, "the marker left the view: tracking must say it is lost"
+    assert [s for s, _ in states].count(TRACKING) >= 2, f"never re-acquired: {states}"
+    assert log.receiver.stats.losses >= 1
+    assert [m.message.data for m in log.messages] == [MESSAGE]
+
+
+@pytest.mark.slow
+def test_tracking_follows_a_sweep_after_a_still_lock(tmp_path):
+    # Still for the lock, then a smooth swing of a few degrees: about 1 px/ms of marker flow.
+    keys = [(0.0, _view()), (0.6, _view())]
+    keys += [(0.6 + 0.05 * k, _view(tilt=4 * np.sin(k / 3), elevation=2 * np.sin(k / 5)))
+             for k in range(1, 13)]
+    log, rec = _run(tmp_path, keys, 1.2)
+    t = np.array(log.pose_t)
+    moving = t > 620_000
+    errors = pose_errors(t[moving], np.array(log.poses)[moving], rec.pose_at(t[moving]))
+    assert errors.ate_rmse_m < 0.015  # the paper's hand-held ATE is 1.4-2.0 cm
+    assert log.receiver.stats.losses == 0
