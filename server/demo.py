@@ -1,14 +1,17 @@
-"""``make demo``: run the server, upload a sample message, print where to watch it.
+"""``make demo``: run the server, upload a sample message, start a receiver daemon on the
+virtual event camera, print where to watch it.
 
-Ctrl-C stops everything. Each part of the demo is one step in ``main`` so more (the receiver on
-the virtual event camera) can be added beside the server.
+Ctrl-C stops everything. Each part of the demo is one step in ``main``.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 import urllib.request
@@ -76,6 +79,17 @@ def upload_sample(base_url: str, settings: Settings) -> dict:
         return json.load(response)
 
 
+def start_receiver(base_url: str, settings: Settings) -> subprocess.Popen:
+    """The receiver daemon on the virtual event camera, in its own process: the server never
+    imports the receiver, they meet over HTTP and websockets only."""
+    env = {**os.environ, "NUMBA_NUM_THREADS": "1"}
+    if settings.token is not None:
+        env["EVENTOCC_TOKEN"] = settings.token.get_secret_value()
+    command = [sys.executable, "-m", "receiver.cli", "receive", "--source", "sim:"]
+    command += ["--server", base_url, "--out", str(settings.data_dir / "receiver")]
+    return subprocess.Popen(command, env=env)
+
+
 def main() -> None:
     settings = Settings()
     if settings.port and not port_is_free(settings.host, settings.port):
@@ -83,8 +97,10 @@ def main() -> None:
     server, thread = start_server(settings)
     base_url = bound_url(server)
     message = upload_sample(base_url, settings)
+    receiver = start_receiver(base_url, settings)
     print(f"eventocc server on {base_url}  (API docs: {base_url}/docs)")
     print(f"transmitter: {base_url}/transmitter?id={message['id']}")
+    print(f"dashboard:   {base_url}/dashboard  (a receiver watches on the virtual camera)")
     print("Ctrl-C to stop.")
     try:
         while thread.is_alive():
@@ -92,6 +108,8 @@ def main() -> None:
     except KeyboardInterrupt:
         print("\nstopping")
     finally:
+        receiver.terminate()
+        receiver.wait(30)
         server.should_exit = True
         thread.join()
 

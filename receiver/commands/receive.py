@@ -1,0 +1,187 @@
+"""``eventocc-receiver receive``: the live receiver daemon.
+
+Reads events from a source, runs the receiver pipeline on them, and streams poses, frame
+statistics, progress and finished messages to an eventocc server over a websocket, while
+keeping the full-rate trajectory and the finished messages in the output folder. If the server
+is away, reports that matter (poses, messages) wait in the output folder's spool and are sent
+when it is back. Ctrl-C stops it.
+
+Sources: ``sim:`` (default) the virtual event camera watching what the server's transmitter
+plays; ``file:PATH`` or ``PATH`` a recording; ``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live
+camera through an optional backend.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
+from receiver.camera import CameraModel
+from receiver.daemon import Daemon, DaemonConfig, OutputFolder
+from receiver.sources import SourceError, open_source
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "receive",
+        help="run the live receiver daemon (events -> server)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--source",
+        default="sim:",
+        help="sim: | file:PATH | PATH | nd: | metavision:[SERIAL] | dv:  (default: sim:)",
+    )
+    p.add_argument(
+        "--pace",
+        choices=("realtime", "fast"),
+        default="realtime",
+        help="recordings: replay at the recorded pace, or as fast as the pipeline runs",
+    )
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        help="camera calibration file (default: the virtual camera's 320x180 for sim:, "
+        "else the paper's 1280x720)",
+    )
+    p.add_argument(
+        "--profile",
+        choices=PROFILE_NAMES,
+        help=f"the transmitter's link profile (sim: asked from the server; else {DEFAULT_PROFILE})",
+    )
+    p.add_argument("--cells", type=int, help="payload side N (sim: asked from the server; else 16)")
+    p.add_argument("--refresh-hz", type=float, default=60.0, help="the display's refresh rate")
+    p.add_argument("--marker-size", type=float, default=0.272, help="marker side on screen, metres")
+    p.add_argument(
+        "--motion",
+        choices=("handheld", "static"),
+        default="static",
+        help="sim: a tripod, or a hand-held wander (slower to simulate than real time)",
+    )
+    p.add_argument(
+        "--server",
+        default=os.environ.get("EVENTOCC_SERVER", "http://127.0.0.1:8000"),
+        help="the eventocc server's URL (env EVENTOCC_SERVER; default http://127.0.0.1:8000)",
+    )
+    p.add_argument(
+        "--token",
+        default=os.environ.get("EVENTOCC_TOKEN"),
+        help="the server's token (env EVENTOCC_TOKEN), if it has one",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("out/receiver"),
+        help="output folder: trajectory.tum, messages/, spool.db (default out/receiver)",
+    )
+    p.add_argument(
+        "--pose-hz",
+        type=float,
+        default=100.0,
+        help="poses sent to the server per second, at most (the file keeps all; default 100)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except (SourceError, OSError, ValueError) as error:
+        print(f"eventocc-receiver receive: error: {error}", file=sys.stderr)
+        return 2
+
+
+def websocket_url(http_url: str) -> str:
+    if not http_url.startswith(("http://", "https://")):
+        raise ValueError(f"--server must be an http:// or https:// URL, got {http_url!r}")
+    return "ws" + http_url.removeprefix("http")
+
+
+def _camera(args: argparse.Namespace) -> CameraModel:
+    if args.calibration is not None:
+        from receiver.calibration import load_calibration
+
+        return load_calibration(args.calibration)
+    if args.source.startswith("sim:"):
+        from receiver.virtual_camera import default_camera
+
+        return default_camera()
+    return CameraModel.paper()
+
+
+def _run(args: argparse.Namespace) -> int:
+    from receiver.pipeline.config import ReceiverConfig
+    from receiver.pipeline.receiver import Receiver
+    from receiver.publisher import Publisher
+    from receiver.spool import Spool
+    from receiver.virtual_camera import VirtualCamera
+
+    camera = _camera(args)
+    source = open_source(
+        args.source,
+        realtime=args.pace == "realtime",
+        server_url=args.server,
+        camera=camera,
+        motion=args.motion,
+    )
+    if (source.width, source.height) != (camera.width, camera.height):
+        raise ValueError(
+            f"the source is {source.width}x{source.height} but the calibration is "
+            f"{camera.width}x{camera.height}; pass the matching --calibration"
+        )
+    profile, cells = args.profile, args.cells
+    if isinstance(source, VirtualCamera):  # it knows what is being sent
+        profile, cells = source.link_settings(profile, cells)
+    config = ReceiverConfig(
+        camera,
+        cells=cells or 16,
+        profile=profile or DEFAULT_PROFILE,
+        refresh_hz=args.refresh_hz,
+        marker_size_m=args.marker_size,
+    )
+    output = OutputFolder(args.out)
+    spool = Spool(output.root / "spool.db")
+    stop = threading.Event()
+    publisher = Publisher(websocket_url(args.server), spool, token=args.token, on_fatal=stop.set)
+    daemon = Daemon(
+        source, Receiver(config), publisher.start(), output, DaemonConfig(pose_hz=args.pose_hz)
+    )
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    log.info(
+        "receiver %s: %s, profile %s, %d cells -> %s; output in %s",
+        spool.receiver_id,
+        args.source,
+        config.profile,
+        config.cells,
+        args.server,
+        output.root,
+    )
+    try:
+        summary = daemon.run(stop)
+    except KeyboardInterrupt:
+        summary = daemon.summary
+    finally:
+        publisher.close()
+        left = len(spool)
+        spool.close()
+    log.info(
+        "stopped after %d events: %d poses, %d frames, %d messages; %d reports left in the spool",
+        summary.events,
+        summary.poses,
+        summary.frames,
+        len(summary.messages),
+        left,
+    )
+    if publisher.error is not None:
+        print(f"eventocc-receiver receive: error: {publisher.error}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,269 @@
+"""The receiver daemon: source -> pipeline -> reports, to the server and to the output folder.
+
+The pipeline sees every event; what leaves it is thinned for each audience:
+
+- the output folder keeps everything: the full-rate trajectory (``trajectory.tum``) and every
+  finished message (``messages/``), plus the publisher's spool (``spool.db``) and the latest
+  health (``health.json``);
+- the server gets poses at most ``pose_hz`` (for the UI; durable, so a server restart loses no
+  segment), every finished message (durable), each frame's statistics, and a few times a
+  second progress, health and a time-surface thumbnail (ephemeral news: while the server is
+  away, only the newest of each kind waits).
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+from pydantic import BaseModel
+
+from occ.report import (
+    FrameStats,
+    HealthReport,
+    MessageReport,
+    PoseReport,
+    ProgressReport,
+    SurfaceReport,
+    TrackingState,
+)
+from receiver.pipeline.receiver import FrameOutput, MessageOutput, Output, PoseEstimate, StateChange
+from receiver.poses import format_seconds, pose_to_tum_row
+from receiver.sources import EventSource
+
+log = logging.getLogger(__name__)
+
+PIPELINE_STATES = {"detecting": TrackingState.SCANNING, "tracking": TrackingState.TRACKING}
+
+
+class Progress(Protocol):
+    def progress(self) -> dict[int, dict]: ...
+
+
+class Pipeline(Protocol):
+    """What the daemon needs of ``receiver.pipeline.receiver.Receiver`` (tests may pass a
+    stand-in): ``push`` events, and the stream decoder's progress per message in flight."""
+
+    stream: Progress
+
+    def push(self, chunk: np.ndarray) -> list[Output]: ...
+
+
+class Sink(Protocol):
+    """Where reports go: ``receiver.publisher.Publisher`` (or a list in tests)."""
+
+    def publish(self, report: BaseModel, *, durable: bool) -> None: ...
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    pose_hz: float = 100.0
+    """Poses sent to the server per second, at most (the file keeps all of them)."""
+    news_hz: float = 4.0
+    """Progress, health and thumbnail updates per second."""
+    thumbnail_px: tuple[int, int] = (64, 48)
+    thumbnail_tau_us: int = 30_000
+    """Time-surface decay: events older than a few tau fade to black."""
+
+    def __post_init__(self) -> None:
+        if self.pose_hz <= 0 or self.news_hz <= 0:
+            raise ValueError(f"rates must be positive, got {self.pose_hz}, {self.news_hz} Hz")
+
+
+@dataclass
+class DaemonSummary:
+    chunks: int = 0
+    events: int = 0
+    poses: int = 0
+    poses_published: int = 0
+    frames: int = 0
+    messages: list[str] = field(default_factory=list)
+
+
+class OutputFolder:
+    """The daemon's files: the full-rate trajectory and the finished messages."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.messages = self.root / "messages"
+        self.messages.mkdir(parents=True, exist_ok=True)
+        self.trajectory = self.root / "trajectory.tum"
+        if not self.trajectory.exists():
+            self.trajectory.write_text(
+                "# t tx ty tz qx qy qz qw (T_world_cam, marker frame, metres)\n"
+            )
+
+    def append_poses(self, poses: list[PoseEstimate]) -> None:
+        rows = pose_to_tum_row(np.stack([p.T_world_cam for p in poses]))
+        lines = (
+            format_seconds(p.t_us) + " " + " ".join(f"{v:.9f}" for v in row) + "\n"
+            for p, row in zip(poses, rows, strict=True)
+        )
+        with self.trajectory.open("a") as f:
+            f.writelines(lines)
+
+    def write_health(self, report: HealthReport) -> None:
+        """``health.json``: its age tells a supervisor (a container health check) we are alive."""
+        partial = self.root / "health.json.partial"
+        partial.write_text(report.model_dump_json())
+        partial.replace(self.root / "health.json")  # atomic: readers never see half a file
+
+    def save_message(self, name: str, sha256: str, data: bytes) -> Path:
+        # The digest prefix keeps two messages of the same name apart; the name is never a path.
+        path = self.messages / f"{sha256[:12]}-{Path(name).name or 'message'}"
+        path.write_bytes(data)
+        return path
+
+
+class Daemon:
+    def __init__(
+        self,
+        source: EventSource,
+        pipeline: Pipeline,
+        sink: Sink,
+        output: OutputFolder,
+        config: DaemonConfig | None = None,
+    ) -> None:
+        self.source = source
+        self.pipeline = pipeline
+        self.sink = sink
+        self.output = output
+        self.config = config or DaemonConfig()
+        self.summary = DaemonSummary()
+        self.state = TrackingState.IDLE
+        self._last_pose_sent_us = -(1 << 62)
+        self._next_news = 0.0
+        self._rate = RateMeter()
+
+    def run(self, stop: threading.Event | None = None) -> DaemonSummary:
+        """Process the source until it ends or ``stop`` is set."""
+        log.info("receiving from %dx%d events", self.source.width, self.source.height)
+        self.state = TrackingState.SCANNING
+        for chunk in self.source.chunks():
+            if stop is not None and stop.is_set():
+                break
+            self.process(chunk)
+        self.state = TrackingState.IDLE
+        self.publish_news(None)
+        return self.summary
+
+    def process(self, chunk: np.ndarray) -> None:
+        self.summary.chunks += 1
+        self.summary.events += len(chunk)
+        self._rate.add(chunk)
+        self.handle(self.pipeline.push(chunk))
+        if time.monotonic() >= self._next_news:
+            self._next_news = time.monotonic() + 1.0 / self.config.news_hz
+            self.publish_news(chunk)
+
+    def handle(self, outputs: Iterable[Output]) -> None:
+        poses: list[PoseEstimate] = []
+        for out in outputs:
+            if isinstance(out, PoseEstimate):
+                poses.append(out)
+                self.publish_pose(out)
+            elif isinstance(out, FrameOutput):
+                self.summary.frames += 1
+                self.sink.publish(self.frame_stats(out), durable=False)
+            elif isinstance(out, MessageOutput):
+                self.publish_message(out)
+            elif isinstance(out, StateChange):
+                log.info("%s at %s s: %s", out.state, format_seconds(out.t_us), out.reason)
+                self.state = PIPELINE_STATES.get(out.state, TrackingState.LOST)
+                if self.state is TrackingState.SCANNING and self.summary.poses:
+                    self.state = TrackingState.LOST
+        if poses:
+            self.summary.poses += len(poses)
+            self.output.append_poses(poses)
+
+    def publish_pose(self, pose: PoseEstimate) -> None:
+        if pose.t_us - self._last_pose_sent_us < 1e6 / self.config.pose_hz:
+            return
+        self._last_pose_sent_us = pose.t_us
+        self.summary.poses_published += 1
+        row = pose_to_tum_row(pose.T_world_cam)
+        report = PoseReport(
+            t_us=pose.t_us,
+            position=tuple(row[:3]),
+            quaternion_xyzw=tuple(row[3:]),
+            state=TrackingState.TRACKING,
+        )
+        self.sink.publish(report, durable=True)
+
+    def publish_message(self, out: MessageOutput) -> None:
+        message = out.message
+        path = self.output.save_message(message.name, message.sha256, message.data)
+        log.info("message %r complete (%d bytes) -> %s", message.name, len(message.data), path)
+        self.summary.messages.append(message.sha256)
+        self.sink.publish(MessageReport.of(message), durable=True)
+
+    def frame_stats(self, out: FrameOutput) -> FrameStats:
+        read = out.read
+        return FrameStats(
+            t_us=read.t_us,
+            frame_index=max(read.index, 0),
+            bits_read=int(read.bits.size) if out.accepted else 0,
+            confidence_mean=float(np.clip(np.mean(read.confidence), 0.0, 1.0)),
+            events_per_s=self._rate.events_per_s,
+        )
+
+    def publish_news(self, chunk: np.ndarray | None) -> None:
+        """The periodic ephemeral updates: progress, health, thumbnail."""
+        for stream in self.pipeline.stream.progress().values():
+            self.sink.publish(ProgressReport(**stream), durable=False)
+        health = HealthReport(
+            cpu_load=self._rate.cpu_load(), events_per_s=self._rate.events_per_s, state=self.state
+        )
+        self.sink.publish(health, durable=False)
+        self.output.write_health(health)
+        if chunk is not None and len(chunk):
+            self.sink.publish(self.thumbnail(chunk), durable=False)
+
+    def thumbnail(self, chunk: np.ndarray) -> SurfaceReport:
+        width, height = self.config.thumbnail_px
+        sx = max(1, -(-self.source.width // width))
+        sy = max(1, -(-self.source.height // height))
+        t_now = int(chunk["t"][-1])
+        latest = np.full((height, width), np.iinfo(np.int64).min // 2, np.int64)
+        rows = np.minimum(chunk["y"] // sy, height - 1)
+        cols = np.minimum(chunk["x"] // sx, width - 1)
+        np.maximum.at(latest, (rows, cols), chunk["t"])
+        fade = np.exp(-(t_now - latest) / self.config.thumbnail_tau_us)
+        pixels = np.round(255 * fade).astype(np.uint8)
+        return SurfaceReport(
+            t_us=t_now,
+            width=width,
+            height=height,
+            pixels_b64=base64.b64encode(pixels.tobytes()).decode(),
+        )
+
+
+class RateMeter:
+    """Event rate over the recent chunks, and the process's CPU use since the last reading."""
+
+    def __init__(self) -> None:
+        self.events_per_s = 0.0
+        self._window: list[tuple[int, int]] = []  # (t_end_us, events) of recent chunks
+        self._cpu = (time.monotonic(), time.process_time())
+
+    def add(self, chunk: np.ndarray) -> None:
+        if not len(chunk):
+            return
+        self._window.append((int(chunk["t"][-1]), len(chunk)))
+        while len(self._window) > 2 and self._window[-1][0] - self._window[0][0] > 1_000_000:
+            self._window.pop(0)
+        span_us = self._window[-1][0] - self._window[0][0]
+        if span_us > 0:
+            self.events_per_s = sum(n for _, n in self._window[1:]) * 1e6 / span_us
+
+    def cpu_load(self) -> float:
+        wall, cpu = time.monotonic(), time.process_time()
+        (wall0, cpu0), self._cpu = self._cpu, (wall, cpu)
+        return max(0.0, (cpu - cpu0) / max(wall - wall0, 1e-6))

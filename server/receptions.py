@@ -1,0 +1,227 @@
+"""What receivers sent us, kept in SQLite beside the message store (same file, own tables).
+
+A *reception* is one message a receiver decoded in full: its bytes, their sha256 (computed
+again here: bytes that do not match the digest the receiver claims are refused), and the
+uploaded message with the same digest, if any. Poses are kept at the rate the receiver
+publishes them (decimated for the UI), so a trajectory survives a server restart. Each
+receiver numbers its reports; the server remembers the highest number it has stored per
+receiver, so a report replayed from the receiver's spool after a reconnect is acknowledged
+again but stored once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import secrets
+import sqlite3
+from collections.abc import Iterable, Iterator
+from contextlib import closing, contextmanager
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS receivers (
+    id         TEXT PRIMARY KEY,
+    first_seen TEXT NOT NULL,
+    last_seen  TEXT NOT NULL,
+    last_seq   INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS receptions (
+    id         TEXT PRIMARY KEY,
+    receiver   TEXT NOT NULL REFERENCES receivers(id),
+    seq        INTEGER NOT NULL,
+    name       TEXT NOT NULL,
+    sha256     TEXT NOT NULL,
+    size       INTEGER NOT NULL,
+    goodput_bps REAL,
+    message_id TEXT,
+    received   TEXT NOT NULL,
+    data       BLOB NOT NULL,
+    UNIQUE (receiver, seq)
+);
+CREATE TABLE IF NOT EXISTS receiver_poses (
+    receiver TEXT NOT NULL REFERENCES receivers(id),
+    t_us     INTEGER NOT NULL,
+    tx REAL, ty REAL, tz REAL, qx REAL, qy REAL, qz REAL, qw REAL,
+    PRIMARY KEY (receiver, t_us)
+) WITHOUT ROWID;
+"""
+COLUMNS = "id, receiver, seq, name, sha256, size, goodput_bps, message_id, received"
+
+PoseRow = tuple[int, float, float, float, float, float, float, float]
+"""``(t_us, tx, ty, tz, qx, qy, qz, qw)``: a TUM row with the time in microseconds."""
+
+
+def _mark(db: sqlite3.Connection, receiver: str, seq: int) -> None:
+    # In the same transaction as what report ``seq`` stored: both happen or neither.
+    db.execute(
+        "UPDATE receivers SET last_seq = MAX(last_seq, ?), last_seen = ? WHERE id = ?",
+        (seq, datetime.now(UTC).isoformat(), receiver),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Reception:
+    id: str
+    receiver: str
+    seq: int
+    name: str
+    sha256: str
+    """Computed by the server from the bytes it stored."""
+    size: int
+    goodput_bps: float | None
+    """Message bits over the time since the receiver's first progress report of it."""
+    message_id: str | None
+    """The uploaded message with the same sha256, if any."""
+    received: datetime
+
+    @classmethod
+    def from_row(cls, row: sqlite3.Row) -> Reception:
+        return cls(
+            **{
+                **dict(row),
+                "received": datetime.fromisoformat(row["received"]),
+            }
+        )
+
+
+class ReceptionStore:
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self._transaction() as db:
+            db.execute("PRAGMA journal_mode=WAL")
+            db.executescript(SCHEMA)
+
+    @contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        with closing(sqlite3.connect(self.path, timeout=10.0)) as db:
+            db.row_factory = sqlite3.Row
+            # WAL + NORMAL: a commit survives a crash of the server process (not of the machine)
+            # without one fsync per pose.
+            db.execute("PRAGMA synchronous=NORMAL")
+            with db:
+                yield db
+
+    def register(self, receiver: str) -> int:
+        """Record that ``receiver`` connected; returns the last report number stored from it."""
+        now = datetime.now(UTC).isoformat()
+        with self._transaction() as db:
+            db.execute(
+                "INSERT INTO receivers (id, first_seen, last_seen) VALUES (?, ?, ?) "
+                "ON CONFLICT(id) DO UPDATE SET last_seen = excluded.last_seen",
+                (receiver, now, now),
+            )
+            return db.execute(
+                "SELECT last_seq FROM receivers WHERE id = ?", (receiver,)
+            ).fetchone()[0]
+
+    def mark_stored(self, receiver: str, seq: int) -> None:
+        """Remember that every report of ``receiver`` up to ``seq`` has been handled."""
+        with self._transaction() as db:
+            _mark(db, receiver, seq)
+
+    def add(
+        self,
+        *,
+        receiver: str,
+        seq: int,
+        name: str,
+        data: bytes,
+        claimed_sha256: str,
+        goodput_bps: float | None,
+        message_id: str | None,
+    ) -> Reception:
+        """Store a finished message; a replay of the same (receiver, seq) returns the first.
+
+        Raises ``ValueError`` if ``data`` does not hash to ``claimed_sha256``.
+        """
+        sha256 = hashlib.sha256(data).hexdigest()
+        if not secrets.compare_digest(sha256, claimed_sha256.lower()):
+            raise ValueError(f"message {name!r} does not match its sha256: refusing to store it")
+        reception = Reception(
+            id=secrets.token_hex(6),
+            receiver=receiver,
+            seq=seq,
+            name=name,
+            sha256=sha256,
+            size=len(data),
+            goodput_bps=goodput_bps,
+            message_id=message_id,
+            received=datetime.now(UTC),
+        )
+        with self._transaction() as db:
+            db.execute(
+                f"INSERT OR IGNORE INTO receptions ({COLUMNS}, data) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    reception.id,
+                    receiver,
+                    seq,
+                    name,
+                    sha256,
+                    reception.size,
+                    goodput_bps,
+                    message_id,
+                    reception.received.isoformat(),
+                    data,
+                ),
+            )
+            row = db.execute(
+                f"SELECT {COLUMNS} FROM receptions WHERE receiver = ? AND seq = ?", (receiver, seq)
+            ).fetchone()
+        return Reception.from_row(row)
+
+    def get(self, reception_id: str) -> Reception | None:
+        with self._transaction() as db:
+            row = db.execute(
+                f"SELECT {COLUMNS} FROM receptions WHERE id = ?", (reception_id,)
+            ).fetchone()
+        return Reception.from_row(row) if row else None
+
+    def receptions(self, limit: int = 100) -> list[Reception]:
+        """The newest ``limit`` receptions, newest first."""
+        with self._transaction() as db:
+            rows = db.execute(
+                f"SELECT {COLUMNS} FROM receptions ORDER BY received DESC, id LIMIT ?", (limit,)
+            ).fetchall()
+        return [Reception.from_row(row) for row in rows]
+
+    def content(self, reception: Reception) -> bytes:
+        with self._transaction() as db:
+            row = db.execute("SELECT data FROM receptions WHERE id = ?", (reception.id,)).fetchone()
+        if row is None:
+            raise KeyError(f"reception {reception.id} has been deleted")
+        return bytes(row["data"])
+
+    def add_poses(self, receiver: str, seq: int, rows: Iterable[PoseRow]) -> None:
+        """Append ``(t_us, tx, ty, tz, qx, qy, qz, qw)`` rows sent in report ``seq``."""
+        with self._transaction() as db:
+            db.executemany(
+                "INSERT OR IGNORE INTO receiver_poses VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                ((receiver, *row) for row in rows),
+            )
+            _mark(db, receiver, seq)
+
+    def poses(
+        self, receiver: str
+    ) -> list[tuple[int, float, float, float, float, float, float, float]]:
+        """All kept poses of ``receiver`` in time order, as TUM rows with t in microseconds."""
+        with self._transaction() as db:
+            rows = db.execute(
+                "SELECT t_us, tx, ty, tz, qx, qy, qz, qw FROM receiver_poses "
+                "WHERE receiver = ? ORDER BY t_us",
+                (receiver,),
+            ).fetchall()
+        return [tuple(row) for row in rows]
+
+    def receiver_ids(self) -> list[str]:
+        with self._transaction() as db:
+            return [r[0] for r in db.execute("SELECT id FROM receivers ORDER BY last_seen DESC")]
+
+    def totals(self) -> tuple[int, int]:
+        """(receptions, their bytes), for the metrics."""
+        with self._transaction() as db:
+            row = db.execute("SELECT COUNT(*), COALESCE(SUM(size), 0) FROM receptions").fetchone()
+        return int(row[0]), int(row[1])

@@ -1,0 +1,178 @@
+"""The receiver daemon without the network: sources, pacing, the spool, and what it reports."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+
+import numpy as np
+import pytest
+
+from occ.report import FrameStats, HealthReport, MessageReport, PoseReport, SurfaceReport
+from occ.stream import ReceivedMessage
+from receiver.daemon import Daemon, DaemonConfig, OutputFolder
+from receiver.events import make_events
+from receiver.pipeline.decoder import FrameRead
+from receiver.pipeline.receiver import FrameOutput, MessageOutput, PoseEstimate, StateChange
+from receiver.poses import make_pose, read_tum
+from receiver.sources import SourceError, open_source, paced
+from receiver.spool import Spool
+
+
+class ListSink:
+    def __init__(self) -> None:
+        self.reports: list[tuple[object, bool]] = []
+
+    def publish(self, report, *, durable: bool) -> None:
+        self.reports.append((report, durable))
+
+    def of(self, kind: type) -> list:
+        return [r for r, _ in self.reports if isinstance(r, kind)]
+
+
+class ScriptedStream:
+    def progress(self) -> dict[int, dict]:
+        return {
+            5: {"stream_id": 5, "symbols_held": 3, "symbols_needed": 9, "name": "a.txt", "size": 40}
+        }
+
+
+class ScriptedPipeline:
+    """Stands in for the receiver pipeline: one pose per 250 us of events, a frame per chunk,
+    and a message on the chunk given."""
+
+    def __init__(self, message_on_chunk: int = 3) -> None:
+        self.stream = ScriptedStream()
+        self.chunks = 0
+        self.message_on_chunk = message_on_chunk
+
+    def push(self, chunk: np.ndarray) -> list:
+        self.chunks += 1
+        t0, t1 = int(chunk["t"][0]), int(chunk["t"][-1])
+        out: list = [StateChange(t0, "tracking", "marker detected")] if self.chunks == 1 else []
+        out += [
+            PoseEstimate(t, make_pose(np.eye(3), [t * 1e-6, 0.0, -1.0])) for t in range(t0, t1, 250)
+        ]
+        bits = np.ones((4, 4), np.uint8)
+        out.append(
+            FrameOutput(
+                FrameRead(self.chunks, t1, bits, np.full((4, 4), 0.9), 0.8, len(chunk)), True
+            )
+        )
+        if self.chunks == self.message_on_chunk:
+            data = b"the scripted message"
+            digest = hashlib.sha256(data).hexdigest()
+            out.append(MessageOutput(t1, ReceivedMessage("a.txt", data, digest, 5, "robust")))
+        return out
+
+
+class ListSource:
+    def __init__(self, chunks: list[np.ndarray], width: int = 64, height: int = 48) -> None:
+        self.width, self.height = width, height
+        self._chunks = chunks
+
+    def chunks(self):
+        return iter(self._chunks)
+
+
+def chunk(t0_us: int, t1_us: int, n: int = 200, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = np.linspace(t0_us, t1_us, n).astype(np.int64)
+    return make_events(t, rng.integers(0, 64, n), rng.integers(0, 48, n), rng.integers(0, 2, n))
+
+
+def run_daemon(tmp_path, chunks: list[np.ndarray], **config) -> tuple[Daemon, ListSink]:
+    sink = ListSink()
+    daemon = Daemon(
+        ListSource(chunks),
+        ScriptedPipeline(),
+        sink,
+        OutputFolder(tmp_path / "out"),
+        DaemonConfig(**config),
+    )
+    daemon.run()
+    return daemon, sink
+
+
+def test_poses_are_decimated_for_the_server_and_kept_in_full_in_the_file(tmp_path) -> None:
+    chunks = [chunk(i * 10_000, (i + 1) * 10_000 - 1) for i in range(10)]  # 0.1 s
+    daemon, sink = run_daemon(tmp_path, chunks, pose_hz=100.0)
+    sent = sink.of(PoseReport)
+    assert [p.t_us for p in sent] == list(range(0, 100_000, 10_000))
+    assert all(durable for r, durable in sink.reports if isinstance(r, PoseReport))
+    t_us, T = read_tum(tmp_path / "out" / "trajectory.tum")
+    assert len(t_us) == daemon.summary.poses == 400, "the file keeps every pose"
+    assert np.allclose(T[:, 0, 3], t_us * 1e-6)
+    assert sent[3].position == pytest.approx((0.03, 0.0, -1.0))
+
+
+def test_finished_messages_are_saved_and_reported_durably(tmp_path) -> None:
+    _, sink = run_daemon(tmp_path, [chunk(i * 1000, i * 1000 + 999) for i in range(4)])
+    (report,) = sink.of(MessageReport)
+    assert report.data == b"the scripted message" and report.name == "a.txt"
+    assert (report, True) in sink.reports
+    (saved,) = (tmp_path / "out" / "messages").iterdir()
+    assert saved.read_bytes() == b"the scripted message" and saved.name.endswith("-a.txt")
+
+
+def test_news_is_ephemeral_and_well_formed(tmp_path) -> None:
+    daemon, sink = run_daemon(tmp_path, [chunk(0, 9_999)], news_hz=1000.0)
+    news = [r for r, durable in sink.reports if not durable]
+    kinds = {type(r).__name__ for r in news}
+    assert kinds == {"FrameStats", "ProgressReport", "HealthReport", "SurfaceReport"}
+    (surface,) = sink.of(SurfaceReport)
+    pixels = np.frombuffer(base64.b64decode(surface.pixels_b64), np.uint8)
+    assert pixels.size == 64 * 48 and pixels.max() == 255, "the newest event is at full white"
+    assert sink.of(FrameStats)[0].confidence_mean == pytest.approx(0.9)
+    assert sink.of(HealthReport)[-1].state == "idle", "the last health says the daemon stopped"
+    assert daemon.summary.frames == 1
+
+
+def test_spool_keeps_identity_and_numbers_across_restarts(tmp_path) -> None:
+    spool = Spool(tmp_path / "spool.db")
+    first_id = spool.receiver_id
+    assert [spool.append(f'{{"n": {i}}}') for i in range(3)] == [1, 2, 3]
+    spool.acknowledge(2)
+    assert spool.pending() == [(3, '{"n": 2}')]
+    spool.acknowledge(3)
+    spool.close()
+    again = Spool(tmp_path / "spool.db")
+    assert again.receiver_id == first_id
+    assert len(again) == 0 and again.append("{}") == 4, "numbers are never reused"
+
+
+def test_paced_waits_for_the_wall_clock_to_catch_up() -> None:
+    now = [100.0]
+    waits: list[float] = []
+
+    def sleep(s: float) -> None:
+        waits.append(round(s, 6))
+        now[0] += s
+
+    chunks = [chunk(1_000_000, 1_010_000), chunk(1_010_001, 1_500_000)]
+    assert len(list(paced(chunks, clock=lambda: now[0], sleep=sleep))) == 2
+    assert waits == [0.01, 0.49]
+    with pytest.raises(ValueError, match="speed must be positive"):
+        list(paced(chunks, speed=0))
+
+
+@pytest.mark.parametrize(
+    ("uri", "message"),
+    [
+        ("file:/nonexistent/rec.raw", "no recording at /nonexistent/rec.raw"),
+        ("usb:camera", "unknown source 'usb:camera': use sim:, file:PATH"),
+        ("nd:", "needs the neuromorphic_drivers package; pip install 'eventocc[live-nd]'"),
+        ("dv:", "pip install 'eventocc[live-dv]'"),
+        ("metavision:", "install OpenEB or the Metavision SDK"),
+    ],
+)
+def test_sources_say_what_to_fix(uri: str, message: str) -> None:
+    with pytest.raises(SourceError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        open_source(uri)
+
+
+def test_virtual_camera_needs_an_http_url() -> None:
+    with pytest.raises(SourceError, match="needs the server's http"):
+        open_source("sim:", server_url="ws://localhost:8000")
+    with pytest.raises(SourceError, match="unknown motion 'flying'"):
+        open_source("sim:", server_url="http://localhost:8000", motion="flying")

@@ -1,0 +1,110 @@
+"""End to end: upload over REST -> transmitter status -> the receiver daemon (real CLI, real
+pipeline) on the virtual camera -> server -> the dashboard in headless Chromium."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+]
+ROOT = Path(__file__).resolve().parent.parent
+ARTIFACTS = ROOT / "test-artifacts"
+TOKEN = "e2e-token"
+TEXT = "Hello from the virtual event camera, through the whole live system!"
+
+
+def request(base_url: str, path: str, body: dict, **headers: str) -> dict:
+    req = urllib.request.Request(
+        base_url + path,
+        data=json.dumps(body).encode(),
+        headers={"Content-Type": "application/json", **headers},
+        method="POST",
+    )
+    with urllib.request.urlopen(req, timeout=10) as response:
+        return json.load(response)
+
+
+def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(serve_app, tmp_path):
+    assert CHROMIUM.exists(), f"{CHROMIUM} is missing: install it with `make system-deps`"
+    from playwright.sync_api import expect, sync_playwright
+
+    base_url, _ = serve_app(token=TOKEN)
+    message = request(
+        base_url, "/api/messages?name=hello.txt", {"text": TEXT}, Authorization=f"Bearer {TOKEN}"
+    )
+    request(
+        base_url,
+        "/api/transmitter/status",
+        {  # what a transmitter page would report
+            "message_id": message["id"],
+            "profile": message["profile"],
+            "cells": message["cells"],
+            "playing": True,
+            "frame_index": 0,
+            "refresh_hz": 60.0,
+        },
+    )
+    daemon = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "receiver.cli",
+            "receive",
+            "--source",
+            "sim:",
+            "--server",
+            base_url,
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        cwd=ROOT,
+        env={**os.environ, "EVENTOCC_TOKEN": TOKEN, "NUMBA_NUM_THREADS": "1"},
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    digest = hashlib.sha256(TEXT.encode()).hexdigest()
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+            page = browser.new_page(viewport={"width": 1100, "height": 760})
+            page.goto(f"{base_url}/dashboard")
+            expect(page.locator("#connection")).to_have_text("live")
+            row = page.locator(f'#receptions li[data-sha256="{digest}"]')
+            expect(row).to_contain_text("hello.txt", timeout=180_000)
+            expect(row).to_contain_text("matches upload")
+            expect(page.locator("#pose-readout")).to_contain_text("distance", timeout=30_000)
+            expect(page.locator("#tracking-state")).to_have_text("tracking", timeout=30_000)
+            page.wait_for_timeout(1500)  # let the sparklines take a few samples
+            ARTIFACTS.mkdir(exist_ok=True)
+            page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)
+            readout = page.locator("#pose-readout").text_content()
+            href = row.locator("a").get_attribute("href")
+            browser.close()
+    finally:
+        daemon.send_signal(signal.SIGTERM)
+        _, log = daemon.communicate(timeout=60)
+    assert daemon.returncode == 0, log
+    with urllib.request.urlopen(base_url + href) as response:
+        assert response.read() == TEXT.encode()
+    distance = float(readout.split("distance")[1].split()[0])
+    assert 2.0 < distance < 3.0, (
+        f"the virtual camera stands 2.5 m away, the dashboard says {readout}"
+    )
+    assert (tmp_path / "out" / "messages" / f"{digest[:12]}-hello.txt").read_text() == TEXT
+    assert "message 'hello.txt' complete" in log

@@ -1,0 +1,306 @@
+"""The live routes over real websockets and a real uvicorn server: handshake, acks, storage,
+refusals, fan-out, REST for receptions, health and metrics."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import hashlib
+import json
+import os
+import socket
+import urllib.error
+import urllib.request
+
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+from occ.report import Hello, MessageReport, PoseReport, SurfaceReport, TrackingState
+from occ.stream import ReceivedMessage
+from server.receptions import ReceptionStore
+
+TOKEN = "s3cret-token"
+TEXT = b"received over the air"
+
+
+def ws_url(base_url: str, path: str) -> str:
+    return "ws" + base_url.removeprefix("http") + path
+
+
+def get(base_url: str, path: str) -> bytes:
+    with urllib.request.urlopen(base_url + path, timeout=5) as response:
+        return response.read()
+
+
+def upload(base_url: str, data: bytes, name: str = "note.txt") -> dict:
+    request = urllib.request.Request(
+        f"{base_url}/api/messages?name={name}",
+        data=data,
+        headers={"Content-Type": "application/octet-stream", "Authorization": f"Bearer {TOKEN}"},
+        method="POST",
+    )
+    with urllib.request.urlopen(request, timeout=5) as response:
+        return json.load(response)
+
+
+def message_report(data: bytes = TEXT, name: str = "note.txt") -> MessageReport:
+    digest = hashlib.sha256(data).hexdigest()
+    return MessageReport.of(ReceivedMessage(name, data, digest, 7, "robust"))
+
+
+def pose(t_us: int) -> PoseReport:
+    return PoseReport(
+        t_us=t_us,
+        position=(0.1, 0.2, -0.5),
+        quaternion_xyzw=(0.0, 0.0, 0.0, 1.0),
+        state=TrackingState.TRACKING,
+    )
+
+
+def envelope(seq: int | None, report) -> str:
+    return json.dumps({"seq": seq, "report": json.loads(report.model_dump_json())})
+
+
+async def open_receiver(base_url: str, receiver_id: str = "rx-1", token: str | None = TOKEN):
+    ws = await connect(ws_url(base_url, "/ws/receiver"))
+    await ws.send(Hello(receiver_id=receiver_id, token=token).model_dump_json())
+    return ws, json.loads(await ws.recv())
+
+
+async def close_code(base_url: str, first: str, then: str | None = None) -> tuple[int, str]:
+    async with connect(ws_url(base_url, "/ws/receiver")) as ws:
+        await ws.send(first)
+        if then is not None:
+            await ws.recv()  # welcome
+            await ws.send(then)
+        with pytest.raises(ConnectionClosed) as closed:
+            while True:
+                await asyncio.wait_for(ws.recv(), 5)
+    return closed.value.rcvd.code, closed.value.rcvd.reason
+
+
+@pytest.mark.parametrize(
+    ("token", "reason"), [(None, "missing or wrong token"), ("wrong", "missing or wrong token")]
+)
+def test_receiver_without_the_right_token_is_refused(serve_app, token, reason, caplog) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+    hello = Hello(receiver_id="intruder", token=token).model_dump_json()
+    assert asyncio.run(close_code(base_url, hello)) == (4401, reason)
+    assert "refused /ws/receiver" in caplog.text
+
+
+@pytest.mark.parametrize("first", ["not json", '{"type": "pose"}', '{"type": "hello"}'])
+def test_malformed_handshake_is_refused(serve_app, first: str) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+    code, reason = asyncio.run(close_code(base_url, first))
+    assert code == 4400 and reason.startswith("expected a Hello report first")
+
+
+@pytest.mark.parametrize("frame", ["[1, 2]", '{"report": {}}', '{"seq": -3, "report": {}}'])
+def test_a_report_outside_its_envelope_closes_the_connection(serve_app, frame: str) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+    hello = Hello(receiver_id="rx", token=TOKEN).model_dump_json()
+    code, reason = asyncio.run(close_code(base_url, hello, frame))
+    assert code == 1007 and "expected" in reason
+
+
+def test_finished_message_is_stored_verified_acked_and_downloadable(serve_app) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+    uploaded = upload(base_url, TEXT)
+
+    async def scenario() -> list[dict]:
+        ws, welcome = await open_receiver(base_url)
+        assert welcome == {"type": "welcome", "last_seq": 0}
+        await ws.send(envelope(1, message_report()))
+        await ws.send(envelope(1, message_report()))  # replayed from a spool: stored once
+        acks = [json.loads(await ws.recv()) for _ in range(2)]
+        await ws.close()
+        return acks
+
+    assert asyncio.run(scenario()) == [{"type": "ack", "seq": 1}] * 2
+    receptions = json.loads(get(base_url, "/api/receptions"))["receptions"]
+    assert len(receptions) == 1
+    (reception,) = receptions
+    assert reception["sha256"] == hashlib.sha256(TEXT).hexdigest()
+    assert reception["message_id"] == uploaded["id"]
+    assert reception["receiver"] == "rx-1" and reception["name"] == "note.txt"
+    assert get(base_url, reception["url"]) == TEXT
+    assert json.loads(get(base_url, f"/api/receptions/{reception['id']}"))["size"] == len(TEXT)
+
+
+def test_reconnecting_receiver_learns_what_was_stored(serve_app) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+
+    async def scenario() -> int:
+        ws, _ = await open_receiver(base_url)
+        for seq in (1, 2, 3):
+            await ws.send(envelope(seq, pose(seq * 10_000)))
+            await ws.recv()
+        await ws.close()
+        ws, welcome = await open_receiver(base_url)
+        await ws.close()
+        return welcome["last_seq"]
+
+    assert asyncio.run(scenario()) == 3
+    tum = get(base_url, "/api/receivers/rx-1/trajectory").decode().splitlines()
+    assert tum[1:] == [
+        f"0.0{i}0000 0.100000000 0.200000000 -0.500000000 0.000000000 0.000000000 "
+        "0.000000000 1.000000000"
+        for i in (1, 2, 3)
+    ]
+
+
+def test_report_failing_the_schema_is_rejected_counted_and_acked(serve_app, caplog) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+    bad = {
+        "type": "message",
+        "stream_id": 1,
+        "name": "x",
+        "size": 3,
+        "sha256": "0" * 64,
+        "data_b64": base64.b64encode(b"abc").decode(),
+        "profile": "robust",
+    }
+
+    async def scenario() -> dict:
+        ws, _ = await open_receiver(base_url)
+        await ws.send(json.dumps({"seq": 1, "report": bad}))
+        ack = json.loads(await ws.recv())
+        await ws.close()
+        return ack
+
+    assert asyncio.run(scenario()) == {"type": "ack", "seq": 1}
+    assert json.loads(get(base_url, "/api/receptions"))["receptions"] == []
+    assert "eventocc_reports_rejected_total 1" in get(base_url, "/metrics").decode()
+    assert "does not match sha256" in caplog.text
+
+
+def test_dashboards_see_receivers_poses_and_receptions(serve_app) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+
+    async def scenario() -> list[dict]:
+        async with connect(ws_url(base_url, "/ws/dashboard")) as dash:
+            ws, _ = await open_receiver(base_url)
+            await ws.send(envelope(1, pose(5)))
+            await ws.send(envelope(2, message_report()))
+            await ws.send(
+                envelope(None, SurfaceReport(t_us=5, width=2, height=1, pixels_b64="AP8="))
+            )
+            seen = []
+            while not seen or seen[-1]["type"] != "surface":
+                seen.append(json.loads(await asyncio.wait_for(dash.recv(), 5)))
+            await ws.close()
+            return seen
+
+    seen = asyncio.run(scenario())
+    kinds = [update["type"] for update in seen]
+    assert kinds == ["receivers", "pose", "reception", "surface"]
+    assert seen[0]["receivers"][0]["receiver_id"] == "rx-1"
+    assert "token" not in json.dumps(seen[0]), "a receiver's token must never reach viewers"
+    assert seen[1]["receiver"] == "rx-1" and seen[1]["position"] == [0.1, 0.2, -0.5]
+    assert seen[2]["url"].startswith("/api/receptions/")
+
+
+def test_transmitter_socket_and_rest_status_are_one_state(serve_app) -> None:
+    base_url, _ = serve_app()
+    status = {
+        "message_id": "0123456789ab",
+        "profile": "robust",
+        "cells": 16,
+        "playing": True,
+        "frame_index": 42,
+        "refresh_hz": 59.9,
+        "missed_refreshes": 3,
+    }
+
+    async def scenario() -> dict:
+        async with connect(ws_url(base_url, "/ws/dashboard")) as dash:
+            async with connect(ws_url(base_url, "/ws/transmitter")) as tx:
+                await tx.send(json.dumps(status))
+                await tx.send(json.dumps({"frame_index": -1}))
+                error = json.loads(await tx.recv())
+                assert error["type"] == "error"
+            while True:
+                update = json.loads(await asyncio.wait_for(dash.recv(), 5))
+                if update["type"] == "transmitter":
+                    return update
+
+    update = asyncio.run(scenario())
+    assert update["frame_index"] == 42 and update["missed_refreshes"] == 3
+    rest = json.loads(get(base_url, "/api/transmitter/status"))
+    assert rest["frame_index"] == 42 and rest["received"] == update["received"]
+
+
+def test_a_stalled_dashboard_does_not_slow_the_others(serve_app) -> None:
+    base_url, app = serve_app(token=TOKEN)
+    hub = app.state.live.hub
+    hub.evict_after = 50  # evict sooner than in production, to keep the test short
+    # 300 updates of 65 kB, incompressible: far more than the kernel buffers can absorb.
+    count, pixels = 300, base64.b64encode(os.urandom(256 * 192)).decode()
+    surface = SurfaceReport(t_us=1, width=256, height=192, pixels_b64=pixels)
+
+    async def scenario() -> int:
+        stalled_sock = socket.socket()
+        stalled_sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        stalled_sock.connect(("127.0.0.1", int(base_url.rsplit(":", 1)[1])))
+        stalled = await connect(ws_url(base_url, "/ws/dashboard"), sock=stalled_sock)
+        stalled.transport.pause_reading()  # it never reads again
+        async with connect(ws_url(base_url, "/ws/dashboard"), max_queue=None) as live:
+            ws, _ = await open_receiver(base_url)
+            got = 0
+            for _ in range(count):  # lock-step: the live viewer is never behind by itself
+                await ws.send(envelope(None, surface))
+                while json.loads(await asyncio.wait_for(live.recv(), 5))["type"] != "surface":
+                    pass
+                got += 1
+            await ws.close()
+        stalled.transport.abort()
+        return got
+
+    assert asyncio.run(scenario()) == count
+    assert hub.dropped >= hub.evict_after, "the stalled viewer was decimated first"
+    assert hub.evicted == 1, "then dropped"
+
+
+def test_health_and_metrics(serve_app) -> None:
+    base_url, _ = serve_app()
+    assert json.loads(get(base_url, "/healthz")) == {
+        "status": "ok",
+        "receivers": 0,
+        "dashboards": 0,
+    }
+    metrics = get(base_url, "/metrics").decode()
+    for name in (
+        "eventocc_receivers_connected",
+        "eventocc_frames_decoded_total",
+        "eventocc_goodput_bits_per_second",
+        "eventocc_dashboard_clients",
+    ):
+        assert f"# TYPE {name} " in metrics and f"\n{name} 0" in metrics
+
+
+def test_unknown_and_malformed_reception_ids(serve_app) -> None:
+    base_url, _ = serve_app()
+    with pytest.raises(urllib.error.HTTPError) as missing:
+        get(base_url, "/api/receptions/0123456789ab")
+    assert missing.value.code == 404
+    with pytest.raises(urllib.error.HTTPError) as malformed:
+        get(base_url, "/api/receptions/nope")
+    assert malformed.value.code == 422
+
+
+def test_store_refuses_bytes_that_do_not_match_their_digest(tmp_path) -> None:
+    store = ReceptionStore(tmp_path / "db.sqlite")
+    store.register("rx")
+    with pytest.raises(ValueError, match="does not match its sha256"):
+        store.add(
+            receiver="rx",
+            seq=1,
+            name="x",
+            data=b"abc",
+            claimed_sha256="0" * 64,
+            goodput_bps=None,
+            message_id=None,
+        )
+    assert store.receptions() == [] and store.register("rx") == 0

@@ -1,0 +1,298 @@
+// The live dashboard: one websocket (/ws/dashboard) feeds a small state object; a
+// requestAnimationFrame loop redraws only what changed. Reconnects with backoff and says so.
+
+const MARKER_SIDE_M = 0.272; // the receiver's default marker size, for scale in the 2D views
+const TRAIL = 600; // poses kept for the trajectory (6 s at the 100 Hz the daemon publishes)
+const SERIES = 120; // one sample per second in each sparkline
+const RECONNECT_S = [0.5, 8];
+const GOODPUT_WINDOW_MS = 60_000; // as the server's /metrics gauge
+
+const $ = (id) => document.getElementById(id);
+
+const state = {
+  poses: [], // {t, p: [x, y, z], axis: [x, y, z]}, newest last
+  posesThisSecond: 0,
+  progress: new Map(), // stream_id -> {report, firstSeen: [ms, held]}
+  receptions: new Map(), // id -> reception
+  recentBits: [], // [ms, bits] of receptions this page saw arrive, for goodput
+  lastFrame: null,
+  health: null,
+  series: { goodput: [], ber: [], events: [], poses: [] },
+  dirty: new Set(["pose", "messages", "charts"]),
+};
+
+// Exposed for tests and curious users: read-only by convention.
+window.eventoccDashboard = state;
+
+// --- the connection --------------------------------------------------------------------------
+let retryS = RECONNECT_S[0];
+
+function connect() {
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  const socket = new WebSocket(`${scheme}://${location.host}/ws/dashboard`);
+  socket.onopen = () => {
+    retryS = RECONNECT_S[0];
+    showConnection("live", "live");
+    loadReceptions();
+  };
+  socket.onmessage = (event) => handle(JSON.parse(event.data));
+  socket.onclose = () => {
+    showConnection("down", `server unreachable: reconnecting in ${retryS.toFixed(1)} s`);
+    setTimeout(connect, retryS * 1000);
+    retryS = Math.min(retryS * 2, RECONNECT_S[1]);
+  };
+}
+
+function showConnection(kind, text) {
+  const pill = $("connection");
+  pill.dataset.state = kind;
+  pill.textContent = text;
+}
+
+async function loadReceptions() {
+  try {
+    const response = await fetch("/api/receptions");
+    for (const r of (await response.json()).receptions) state.receptions.set(r.id, r);
+    state.dirty.add("messages");
+  } catch {
+    // the websocket's close handler already says the server is away
+  }
+}
+
+// --- updates ---------------------------------------------------------------------------------
+const handlers = {
+  pose(u) {
+    state.poses.push({ t: u.t_us, p: u.position, axis: opticalAxis(u.quaternion_xyzw) });
+    if (state.poses.length > TRAIL) state.poses.splice(0, state.poses.length - TRAIL);
+    state.posesThisSecond += 1;
+    state.dirty.add("pose");
+  },
+  frame(u) {
+    state.lastFrame = u;
+    state.dirty.add("state");
+  },
+  health(u) {
+    state.health = u;
+    state.dirty.add("state");
+  },
+  progress(u) {
+    const known = state.progress.get(u.stream_id);
+    const firstSeen = known ? known.firstSeen : [performance.now(), u.symbols_held];
+    state.progress.set(u.stream_id, { report: u, firstSeen });
+    state.dirty.add("messages");
+  },
+  reception(u) {
+    state.receptions.set(u.id, u);
+    state.recentBits.push([performance.now(), 8 * u.size]);
+    for (const [id, p] of state.progress) if (p.report.name === u.name) state.progress.delete(id);
+    state.dirty.add("messages");
+  },
+  surface(u) {
+    drawSurface(u);
+  },
+  receivers(u) {
+    const ids = u.receivers.map((r) => r.receiver_id);
+    $("receivers").textContent = ids.length ? `receivers: ${ids.join(", ")}` : "no receiver connected";
+  },
+  transmitter(u) {
+    const hz = u.refresh_hz ? `${u.refresh_hz.toFixed(1)} Hz` : "– Hz";
+    const what = u.message_id ? `${u.message_id} ${u.profile}/${u.cells}` : "no message";
+    $("transmitter").textContent = `${u.playing ? "playing" : "paused"} ${what}, ${hz}, frame ${u.frame_index}`;
+    $("missed").textContent = `${u.missed_refreshes} missed, ${u.stalls} stalls`;
+  },
+};
+
+function handle(update) {
+  handlers[update.type]?.(update);
+}
+
+function opticalAxis([x, y, z, w]) {
+  // Third column of the rotation matrix: where the camera looks, in the marker frame.
+  return [2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)];
+}
+
+// --- drawing ---------------------------------------------------------------------------------
+function drawViews() {
+  // top: (x, z) with z growing down the canvas; side: (z, y), y down.
+  drawView($("top-view"), (v) => [v[0], v[2]], [[0, 0], [MARKER_SIDE_M, 0]]);
+  drawView($("side-view"), (v) => [v[2], v[1]], [[0, 0], [0, MARKER_SIDE_M]]);
+  const last = state.poses.at(-1);
+  if (last) {
+    const [x, y, z] = last.p;
+    const d = Math.hypot(x - MARKER_SIDE_M / 2, y - MARKER_SIDE_M / 2, z);
+    $("pose-readout").textContent =
+      `x ${x.toFixed(3)}  y ${y.toFixed(3)}  z ${z.toFixed(3)} m   distance ${d.toFixed(2)} m`;
+  }
+}
+
+function drawView(canvas, project, marker) {
+  const ctx = canvas.getContext("2d");
+  const { width: w, height: h } = canvas;
+  ctx.clearRect(0, 0, w, h);
+  const points = state.poses.map((pose) => project(pose.p));
+  const all = [...marker, ...points];
+  const xs = all.map((p) => p[0]);
+  const ys = all.map((p) => p[1]);
+  const span = Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys), 0.3);
+  const scale = (0.8 * Math.min(w, h)) / span;
+  const cx = (Math.max(...xs) + Math.min(...xs)) / 2;
+  const cy = (Math.max(...ys) + Math.min(...ys)) / 2;
+  const at = ([u, v]) => [w / 2 + (u - cx) * scale, h / 2 + (v - cy) * scale];
+
+  ctx.lineWidth = 3;
+  ctx.strokeStyle = "#e6e8ee"; // the screen
+  line(ctx, at(marker[0]), at(marker[1]));
+  if (!points.length) return;
+  ctx.lineWidth = 1;
+  ctx.strokeStyle = "rgba(95, 179, 255, 0.45)"; // the recent trajectory
+  ctx.beginPath();
+  points.forEach((p, i) => (i ? ctx.lineTo(...at(p)) : ctx.moveTo(...at(p))));
+  ctx.stroke();
+  const last = state.poses.at(-1);
+  const head = at(project(last.p));
+  const axis = project(last.axis);
+  ctx.strokeStyle = "#5fb3ff"; // where the camera looks
+  ctx.lineWidth = 2;
+  line(ctx, head, [head[0] + axis[0] * 24, head[1] + axis[1] * 24]);
+  ctx.fillStyle = "#5fb3ff";
+  ctx.beginPath();
+  ctx.arc(head[0], head[1], 5, 0, 2 * Math.PI);
+  ctx.fill();
+}
+
+function line(ctx, a, b) {
+  ctx.beginPath();
+  ctx.moveTo(...a);
+  ctx.lineTo(...b);
+  ctx.stroke();
+}
+
+function drawMessages() {
+  const progress = $("progress");
+  progress.replaceChildren(
+    ...[...state.progress.values()].map(({ report: r, firstSeen: [t0, held0] }) => {
+      const li = document.createElement("li");
+      const share = r.symbols_needed ? Math.min(1, r.symbols_held / r.symbols_needed) : 0;
+      const rate = (r.symbols_held - held0) / ((performance.now() - t0) / 1000);
+      const left = r.symbols_needed - r.symbols_held;
+      const eta = rate > 0 && left > 0 ? `, ETA ${(left / rate).toFixed(0)} s` : "";
+      li.textContent = `${r.name ?? `stream ${r.stream_id}`}: ${r.symbols_held}/${r.symbols_needed} symbols${eta}`;
+      const bar = document.createElement("div");
+      bar.className = "bar";
+      bar.innerHTML = `<div style="width: ${(100 * share).toFixed(1)}%"></div>`;
+      li.append(bar);
+      return li;
+    }),
+  );
+  const list = $("receptions");
+  const receptions = [...state.receptions.values()].sort((a, b) => (a.received < b.received ? 1 : -1));
+  if (!receptions.length) return;
+  list.replaceChildren(
+    ...receptions.map((r) => {
+      const li = document.createElement("li");
+      li.dataset.sha256 = r.sha256;
+      const link = document.createElement("a");
+      link.href = r.url;
+      link.textContent = r.name || r.id;
+      link.download = r.name || r.id;
+      const facts = document.createElement("span");
+      const speed = r.goodput_bps ? `, ${formatRate(r.goodput_bps, "bit/s")}` : "";
+      facts.className = r.message_id ? "verified" : "muted";
+      facts.textContent = `${r.size} B, sha256 ${r.message_id ? "matches upload" : "ok"}${speed}`;
+      li.append(link, facts);
+      return li;
+    }),
+  );
+}
+
+function drawState() {
+  const h = state.health;
+  if (h) {
+    $("tracking-state").textContent = h.state;
+    $("cpu-load").textContent = `${(100 * h.cpu_load).toFixed(0)} % of a core`;
+  }
+  const f = state.lastFrame;
+  if (f) {
+    $("frame-stats").textContent =
+      `#${f.frame_index}, ${f.bits_read} bits, confidence ${f.confidence_mean.toFixed(2)}`;
+  }
+}
+
+function drawSurface(u) {
+  const canvas = $("surface");
+  canvas.width = u.width;
+  canvas.height = u.height;
+  const values = Uint8Array.from(atob(u.pixels_b64), (c) => c.charCodeAt(0));
+  const image = canvas.getContext("2d").createImageData(u.width, u.height);
+  values.forEach((v, i) => image.data.set([v, v, Math.min(255, v + 40), 255], 4 * i));
+  canvas.getContext("2d").putImageData(image, 0, 0);
+}
+
+function sample() {
+  // Once a second: one point per sparkline.
+  const f = state.lastFrame;
+  const push = (name, value) => {
+    const s = state.series[name];
+    s.push(value);
+    if (s.length > SERIES) s.shift();
+  };
+  const since = performance.now() - GOODPUT_WINDOW_MS;
+  state.recentBits = state.recentBits.filter(([t]) => t >= since);
+  push("goodput", state.recentBits.reduce((sum, [, bits]) => sum + bits, 0) / (GOODPUT_WINDOW_MS / 1000));
+  push("ber", f ? (f.ber ?? 1 - f.confidence_mean) : null);
+  push("events", state.health?.events_per_s ?? f?.events_per_s ?? null);
+  push("poses", state.posesThisSecond);
+  state.posesThisSecond = 0;
+  state.dirty.add("charts");
+}
+
+function drawCharts() {
+  const charts = {
+    goodput: (v) => formatRate(v, "bit/s"),
+    ber: (v) => v.toExponential(1),
+    events: (v) => formatRate(v, "ev/s"),
+    poses: (v) => `${v.toFixed(0)} Hz`,
+  };
+  for (const [name, format] of Object.entries(charts)) {
+    const values = state.series[name];
+    const last = values.at(-1);
+    $(`${name}-value`).textContent = last == null ? "–" : format(last);
+    sparkline($(`${name}-chart`), values);
+  }
+}
+
+function sparkline(canvas, values) {
+  const ctx = canvas.getContext("2d");
+  const { width: w, height: h } = canvas;
+  ctx.clearRect(0, 0, w, h);
+  const known = values.filter((v) => v != null);
+  if (!known.length) return;
+  const top = Math.max(...known) || 1;
+  ctx.strokeStyle = "#5fb3ff";
+  ctx.beginPath();
+  values.forEach((v, i) => {
+    if (v == null) return;
+    const x = (i / (SERIES - 1)) * w;
+    const y = h - 2 - (v / top) * (h - 4);
+    i && values[i - 1] != null ? ctx.lineTo(x, y) : ctx.moveTo(x, y);
+  });
+  ctx.stroke();
+}
+
+function formatRate(v, unit) {
+  if (v >= 1e6) return `${(v / 1e6).toFixed(1)} M${unit}`;
+  if (v >= 1e3) return `${(v / 1e3).toFixed(1)} k${unit}`;
+  return `${v.toFixed(0)} ${unit}`;
+}
+
+const painters = { pose: drawViews, messages: drawMessages, state: drawState, charts: drawCharts };
+
+function frame() {
+  for (const part of state.dirty) painters[part]();
+  state.dirty.clear();
+  requestAnimationFrame(frame);
+}
+
+connect();
+setInterval(sample, 1000);
+requestAnimationFrame(frame);
