@@ -1,0 +1,167 @@
+"""Paper Fig. "comparison": streaming success per marker optical flow, and throughput per system.
+
+Frame-camera baselines: a 120 Hz global-shutter camera (``bench.framecam``) films a 60 Hz screen
+that shows a new code on every refresh, or on every other refresh with a black refresh between
+(the paper's two streams). A code counts as received when any frame decodes its exact payload.
+Our event receiver watches the same hand-held motions (same seeds, same camera and display).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from bench.experiments.eventcam import Sensor, camera, fitting_distance, run_event_receiver
+from bench.framecam import FrameCamera, Slideshow
+from occ.stream import StreamEncoder
+from receiver.sim import HandHeldMotion, Scene, SensorModel
+from receiver.sim.motion import project_points
+
+DISTANCE_M = 0.6
+"""Hand-held distance on the full sensor (scaled up for crops so the marker fits)."""
+MARKER_M = 0.272
+FLOW_EDGES = (0.0, 1.0, 2.0, 3.0, 5.0, 8.0)
+"""Bins of the marker's mean optical flow (px/ms) for the success-rate plot."""
+
+
+@dataclass(frozen=True)
+class CodeFamily:
+    """A kind of 2D code: how to draw payload ``i`` as modules, and read payloads from an image."""
+
+    name: str
+    capacity: int
+    """Distinct payloads: a clip shows at most this many codes, so each is told apart."""
+    draw: Callable[[int], np.ndarray]
+    read: Callable[[np.ndarray], set[int]]
+
+    @property
+    def bits(self) -> float:
+        """Payload bits per code (what the throughput counts)."""
+        return math.log2(self.capacity)
+
+
+def _qr_payload(i: int) -> str:
+    return f"{i:017d}"  # 17 bytes: the byte-mode capacity of version 1 at ECC level L
+
+
+def _qr_family() -> CodeFamily:
+    params = cv2.QRCodeEncoder_Params()
+    params.version = 1
+    params.correction_level = cv2.QRCodeEncoder_CORRECT_LEVEL_L
+    params.mode = cv2.QRCodeEncoder_MODE_BYTE
+    encoder = cv2.QRCodeEncoder.create(params)
+    detector = cv2.QRCodeDetector()
+
+    def draw(i: int) -> np.ndarray:
+        return encoder.encode(_qr_payload(i)) > 127  # one pixel per module, quiet zone included
+
+    def read(image: np.ndarray) -> set[int]:
+        text, *_ = detector.detectAndDecode(image)
+        return {int(text)} if text.isdigit() else set()
+
+    return CodeFamily("QR v1-L", 256**17, draw, read)  # 17 bytes: 136 bits
+
+
+def _aruco_family(name: str, dictionary_id: int) -> CodeFamily:
+    dictionary = cv2.aruco.getPredefinedDictionary(dictionary_id)
+    detector = cv2.aruco.ArucoDetector(dictionary, cv2.aruco.DetectorParameters())
+    side = dictionary.markerSize + 2  # data bits plus the black border
+
+    def draw(i: int) -> np.ndarray:
+        tag = cv2.aruco.generateImageMarker(dictionary, i, side) > 127
+        return np.pad(tag, 1, constant_values=True)  # a one-module white quiet zone
+
+    def read(image: np.ndarray) -> set[int]:
+        _, ids, _ = detector.detectMarkers(image)
+        return set() if ids is None else {int(j) for j in ids.ravel()}
+
+    return CodeFamily(name, len(dictionary.bytesList), draw, read)
+
+
+def code_families() -> list[CodeFamily]:
+    return [_qr_family(),
+            _aruco_family("AprilTag 36h11", cv2.aruco.DICT_APRILTAG_36h11),
+            _aruco_family("ArUco 6x6", cv2.aruco.DICT_6X6_1000)]
+
+
+def marker_flow(trajectory, cam, points: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+    """Mean image speed (px/ms) of ``points`` at each time, by a 1 ms central difference."""
+    before = trajectory.pose_at(np.asarray(t_us) - 500.0)
+    after = trajectory.pose_at(np.asarray(t_us) + 500.0)
+    return np.array([np.linalg.norm(project_points(cam, a, points) - project_points(cam, b, points),
+                                    axis=1).mean() for a, b in zip(before, after, strict=True)])
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """Per transmitted code or data frame: its marker flow (px/ms) and whether it was received."""
+
+    system: str
+    flow: np.ndarray
+    received: np.ndarray
+    throughput_bps: float
+    """Payload bits delivered per second (codes: received codes x payload bits; ours: verified
+    message bits after FEC)."""
+    wall_s: float
+
+
+@lru_cache(maxsize=8)
+def _scene(flow: float, seed: int, sensor: Sensor) -> Scene:
+    message = np.random.default_rng(seed).integers(0, 256, 1024, dtype=np.uint8).tobytes()
+    return Scene(encoder=StreamEncoder(message, profile="robust", cells=16),
+                 marker_size_m=MARKER_M, camera=camera(sensor),
+                 motion=HandHeldMotion(fitting_distance(sensor, DISTANCE_M), flow, seed=seed),
+                 sensor=SensorModel.preset("gen4-indoor", lux=250.0), seed=seed)
+
+
+@lru_cache(maxsize=8)
+def _trajectory(scene: Scene):
+    return scene.motion.trajectory(scene.rig)  # calibrating a hand-held motion takes seconds
+
+
+def run_frame_baseline(family: CodeFamily, blank_between: bool, flow: float, seed: int,
+                       duration_s: float, sensor: Sensor) -> Outcome:
+    t0 = time.perf_counter()
+    scene = _scene(flow, seed, sensor)
+    refreshes = int(duration_s * scene.display.refresh_hz)
+    if refreshes > family.capacity:
+        raise ValueError(f"{duration_s} s shows {refreshes} codes but {family.name} has only "
+                         f"{family.capacity} payloads: shorten the clip")
+    trajectory = _trajectory(scene)  # the event camera's motion, exactly
+    screen = Slideshow([family.draw(i) for i in range(refreshes)], MARKER_M, blank_between,
+                       scene.display, scene.sensor.lux)
+    cam = FrameCamera(scene.camera)
+    received: set[int] = set()
+    for _, image in cam.frames(screen, trajectory, duration_s, seed):
+        received |= family.read(image)
+    shown = [k for k in range(refreshes) if screen.code_index(k) is not None]
+    t_mid = (np.array(shown) + 0.5) * scene.display.period_us
+    flow_px = marker_flow(trajectory, scene.camera, screen.corners(), t_mid)
+    got = np.array([screen.code_index(k) in received for k in shown])
+    name = f"{family.name}" + (" + blank" if blank_between else "")
+    return Outcome(name, flow_px, got, float(got.sum() * family.bits / duration_s),
+                   time.perf_counter() - t0)
+
+
+def run_event(flow: float, seed: int, duration_s: float, sensor: Sensor) -> Outcome:
+    """Our receiver: a data frame counts as received when it is read bit-exact (before FEC)."""
+    scene = _scene(flow, seed, sensor)
+    run = run_event_receiver(scene, duration_s)
+    enc = scene.encoder
+    period = scene.display.period_us
+    lock_s = run.report["time_to_lock_s"]
+    first = int(np.ceil((lock_s or duration_s) * 1e6 / period))
+    shown = [k for k in range(first, int(duration_s * 1e6 / period)) if enc.is_data_frame(k)]
+    exact = {round(t / period - 0.5) for t, e in run.frames if e == 0}
+    # A read frame's time falls inside its refresh; allow one refresh of slack either way.
+    got = np.array([any(j in exact for j in (k - 1, k, k + 1)) for k in shown], bool)
+    trajectory = _trajectory(scene)
+    flow_px = marker_flow(trajectory, scene.camera, scene.rig.corners,
+                          (np.array(shown, float) + 0.5) * period)
+    return Outcome("ours (events, N=16)", flow_px, got, run.report["goodput_bps"], run.wall_s)
