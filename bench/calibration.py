@@ -22,8 +22,9 @@ DATA_FRAMES = 4
 
 def main() -> None:
     cam = CameraModel.paper()
-    rows = ["| N | paper px/cell | marker size (m) | simulated px/cell | events per data frame |",
-            "|---|---|---|---|---|"]
+    rows = ["| N | paper px/cell | marker size (m) | px/cell at the marker centre | "
+            "events per data frame |", "|---|---|---|---|---|"]
+    sizes = []
     for cells, px in PAPER_CELL_PX.items():
         enc = StreamEncoder(bytes(8192), profile="paper", cells=cells)
         size = marker_size_for_cell_px(px, enc.geometry, DISTANCE_M, cam.K[0, 0])
@@ -32,18 +33,18 @@ def main() -> None:
                       sensor=SensorModel.preset("gen4-indoor", lux=250.0))
         duration = DATA_FRAMES * 2 / scene.display.refresh_hz
         count = sum(len(c) for c in simulate(scene, duration))
+        sizes.append(size)
         rows.append(f"| {cells} | {px} | {size:.3f} | {scene.cell_px():.1f} | "
                     f"{count / DATA_FRAMES:,.0f} |")
         print(rows[-1], flush=True)
     write_section(
         "calibration", "Simulator calibration against the paper's static set-up",
         "NUMBA_NUM_THREADS=1 .venv/bin/python -m bench.calibration",
-        "Marker at 1.25 m, 60 Hz LCD, 250 lux, gen4-indoor sensor, 1280x720 paper lens. The "
-        "marker size (white ring's outer side) is the one that reproduces the paper's pixels "
-        "per cell; the paper's 0.272 m marker would give far fewer pixels per cell at 1.25 m, so "
-        "the paper's static runs must have used a larger marker (about 0.7-0.8 m across).\n\n"
-        + "\n".join(rows))
-
+        f"Marker at {DISTANCE_M} m, 60 Hz LCD, 250 lux, gen4-indoor sensor, 1280x720 paper lens, "
+        f"{DATA_FRAMES} data frames (paper profile: data + blank) per N. The marker size (the "
+        "white ring's outer side) is the one that gives the paper's pixels per cell at the "
+        f"marker centre: {min(sizes):.2f}-{max(sizes):.2f} m across N, against the 0.272 m "
+        "default.\n\n" + "\n".join(rows))
 
 if __name__ == "__main__":
     main()

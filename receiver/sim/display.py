@@ -45,7 +45,11 @@ class Display:
     black_nits: float = 0.25
     peak_nits: float = 250.0
     pwm_hz: float | None = None
-    """Backlight PWM frequency (None: DC-dimmed backlight, the usual office monitor)."""
+    """Backlight PWM frequency (None: DC-dimmed backlight, the usual office monitor). The
+    backlight (an OLED's emission) is on for the first ``pwm_duty`` of each PWM period, counted
+    from t = 0; it gates the light the cells emit, not the ambient light the panel reflects (nor
+    the black margin's faint glow). Simulated for a still camera only (a moving camera with PWM
+    is refused)."""
     pwm_duty: float = 0.5
     """Share of each PWM period the backlight is on."""
     reflectance: float = 0.02
@@ -87,6 +91,13 @@ class Display:
     def scan_us(self) -> float:
         """Time the scan takes from the top row to the bottom row."""
         return self.scanout_fraction * self.period_us
+
+    def backlight_us(self) -> tuple[float, float]:
+        """(PWM period, on time) in us, as the kernels take them; (0, 0) without PWM."""
+        if self.pwm_hz is None or self.pwm_duty == 1.0:
+            return 0.0, 0.0
+        period = 1e6 / self.pwm_hz
+        return period, self.pwm_duty * period
 
     def ambient_nits(self, lux: float) -> float:
         return lux * self.reflectance * LUX_TO_NITS_PER_REFLECTANCE

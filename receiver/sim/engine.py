@@ -1,7 +1,9 @@
 """``simulate(scene, duration_s)``: a streaming recording of the virtual event camera.
 
 Iterating a ``Recording`` runs the simulation from the start (same seed, same events), one
-``chunk_us`` window at a time, so memory stays bounded however long the recording is.
+``chunk_us`` window at a time, so memory stays bounded however long the recording is. Events
+that fall past a window (sensor latency, or a still camera's refresh rendered whole) are held back
+and merged into the next one.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import numpy as np
 
 from receiver.events import EVENT_DTYPE, empty_events
 from receiver.sim.display import DisplayTimeline
+from receiver.sim.motion import image_box
 from receiver.sim.moving import MovingRenderer
 from receiver.sim.optics import centre_rays, rays_to_plane, sample_rays
 from receiver.sim.render import StaticRenderer
@@ -80,10 +83,7 @@ def _run(rec: Recording) -> Iterator[np.ndarray]:
         signal = renderer.window(t0, t1)
         background = noise.events(t0, t1, rng_noise)
         t, i, p = (np.concatenate([a, b]) for a, b in zip(signal, background, strict=True))
-        events = to_events(t, i, p, cam.width, sensor, rng_delay)
-        if len(pending):
-            events = np.concatenate([pending, events])
-            events = events[np.argsort(events["t"], kind="stable")]
+        events = to_events(t, i, p, cam.width, sensor, rng_delay, pending)
         cut = int(np.searchsorted(events["t"], t1))
         pending = events[cut:] if t1 < rec.duration_us else empty_events()
         yield np.ascontiguousarray(events[:cut], dtype=EVENT_DTYPE)
@@ -104,7 +104,8 @@ def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: P
 def _pixels_near_marker(scene: Scene, T_world_cam: np.ndarray) -> np.ndarray:
     """Flat indices of the pixels whose centre ray lands on the marker or just beside it."""
     cam = scene.camera
-    ys, xs = np.divmod(np.arange(cam.width * cam.height), cam.width)
+    x0, x1, y0, y1 = image_box(cam, T_world_cam, scene.rig.corners, 2 * _MARGIN_PX)
+    ys, xs = np.mgrid[y0:y1, x0:x1].reshape(2, -1)
     centre = rays_to_plane(centre_rays(cam, xs, ys), T_world_cam)
     depth = np.linalg.norm(T_world_cam[:3, 3] - scene.rig.centre)
     margin = _MARGIN_PX * depth / cam.K[0, 0] * 2  # x2: oblique views stretch the footprint
@@ -113,5 +114,5 @@ def _pixels_near_marker(scene: Scene, T_world_cam: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         near = ((centre[:, 0] >= lo) & (centre[:, 0] <= hi)
                 & (centre[:, 1] >= lo) & (centre[:, 1] <= hi))
-    return np.flatnonzero(near)
+    return ys[near] * cam.width + xs[near]
 

@@ -230,3 +230,20 @@ def project_points(camera: CameraModel, T_world_cam: np.ndarray, points_world: n
     T = invert(np.asarray(T_world_cam))
     cam = np.einsum("...ij,nj->...ni", T[..., :3, :3], points_world) + T[..., None, :3, 3]
     return camera.project(cam)
+
+
+def image_box(camera: CameraModel, T_world_cam: np.ndarray, points_world: np.ndarray,
+              margin_px: float) -> tuple[int, int, int, int]:
+    """Pixel box ``(x0, x1, y0, y1)`` (clipped to the sensor, ends exclusive) around the images
+    of world points seen from one or more poses; the whole sensor if a point is behind a camera
+    (its projection would then be meaningless)."""
+    T = invert(np.asarray(T_world_cam))
+    cam = np.einsum("...ij,nj->...ni", T[..., :3, :3], points_world) + T[..., None, :3, 3]
+    if np.any(cam[..., 2] <= 1e-6):
+        return 0, camera.width, 0, camera.height
+    px = camera.project(cam).reshape(-1, 2)
+    lo = np.floor(px.min(axis=0) - margin_px)
+    hi = np.ceil(px.max(axis=0) + margin_px)
+    x0, x1 = (int(np.clip(v, 0, camera.width)) for v in (lo[0], hi[0]))
+    y0, y1 = (int(np.clip(v, 0, camera.height)) for v in (lo[1], hi[1]))
+    return x0, max(x0, x1), y0, max(y0, y1)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+import numba
 import numpy as np
 
 from receiver.camera import CameraModel
@@ -64,9 +65,28 @@ def sample_rays(camera: CameraModel, optics: Optics, x: np.ndarray, y: np.ndarra
 def rays_to_plane(rays: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
     """(..., 2) marker-plane points (z = 0) hit by normalised rays (..., 2); NaN where a ray
     misses the plane (points behind the camera)."""
-    R, C = T_world_cam[:3, :3], T_world_cam[:3, 3]
-    d = rays[..., 0:1] * R[:, 0] + rays[..., 1:2] * R[:, 1] + R[:, 2]  # (..., 3) world
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -C[2] / d[..., 2]
-    s = np.where(s > 0, s, np.nan)
-    return C[:2] + s[..., None] * d[..., :2]
+    rays = np.asarray(rays, dtype=np.float64)
+    flat = np.ascontiguousarray(rays.reshape(-1, 2))
+    T = np.ascontiguousarray(T_world_cam, dtype=np.float64)
+    return _rays_to_plane(flat, T[:3, :3].copy(), T[:3, 3].copy()).reshape(rays.shape)
+
+
+@numba.njit(cache=True, inline="always")
+def plane_point(rx, ry, R, C):
+    """Marker-plane point (x, y) hit by the normalised ray (rx, ry) of a camera with rotation
+    ``R`` and centre ``C`` (world frame); NaN if the ray misses the plane."""
+    dx = R[0, 0] * rx + R[0, 1] * ry + R[0, 2]
+    dy = R[1, 0] * rx + R[1, 1] * ry + R[1, 2]
+    dz = R[2, 0] * rx + R[2, 1] * ry + R[2, 2]
+    s = -C[2] / dz if dz != 0.0 else -1.0
+    if s <= 0.0:
+        return np.nan, np.nan
+    return C[0] + s * dx, C[1] + s * dy
+
+
+@numba.njit(cache=True)
+def _rays_to_plane(rays, R, C):
+    out = np.empty_like(rays)
+    for j in range(rays.shape[0]):
+        out[j, 0], out[j, 1] = plane_point(rays[j, 0], rays[j, 1], R, C)
+    return out

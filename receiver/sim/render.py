@@ -9,7 +9,9 @@ Still camera (``StaticRenderer``): each pixel sees a fixed mix of cells. Between
 its screen row, each cell's luminance is an exponential towards the new level, so the pixel's
 irradiance is ``a + b_rise exp(-u / tau_rise) + b_fall exp(-u / tau_fall)``: one exponential
 (solved exactly) unless rising and falling cells with different time constants share the pixel
-(then sampled on a geometric ladder). Only the pixels that see cells are visited.
+(then sampled on a geometric ladder). A backlight PWM gates that light on and off. Only the
+pixels that see cells are visited, one whole refresh at a time: a pixel is touched once per
+refresh, not once per window, and the events it fires past the window are held back by the caller.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numba
 import numpy as np
 
 from receiver.sim.display import DisplayTimeline, ScreenLayout
-from receiver.sim.sensor import cross_exponential, cross_linear
+from receiver.sim.sensor import EventBuffer, cross_exponential, cross_linear
 
 SCREEN, WALL = -1, -2
 _LADDER_START = 1e-3
@@ -45,17 +47,47 @@ class Radiometry:
     """A white cell, reflection included: the scale of relative intensities."""
 
 
+def plane_geometry(layout: ScreenLayout) -> tuple[float, float, float, float, float]:
+    """The layout as the kernels take it: (cell_m, ring, side, screen_top_m, screen_side_m)."""
+    return (layout.cell_m, float(layout.ring), float(layout.side), layout.screen_top_m,
+            layout.screen_side_m)
+
+
+@numba.njit(cache=True, inline="always")
+def cell_of(px, py, geo):
+    """Cell index of marker-plane point (px, py), -1 off the marker (``geo``: plane_geometry)."""
+    cell_m, ring, side = geo[0], geo[1], geo[2]
+    col = px / cell_m + ring
+    row = py / cell_m + ring
+    if col >= 0.0 and col < side and row >= 0.0 and row < side:
+        return int(row) * int(side) + int(col)
+    return -1
+
+
+@numba.njit(cache=True, inline="always")
+def region_of(px, py, geo):
+    """Cell index, or SCREEN on the black screen, or WALL (also for NaN points)."""
+    c = cell_of(px, py, geo)
+    if c >= 0:
+        return c
+    top, screen = geo[3], geo[4]
+    if px >= top and px < top + screen and py >= top and py < top + screen:
+        return SCREEN
+    return WALL
+
+
+@numba.njit(cache=True)
+def _regions(points, geo):
+    out = np.empty(points.shape[0], np.int32)
+    for j in range(points.shape[0]):
+        out[j] = region_of(points[j, 0], points[j, 1], geo)
+    return out
+
+
 def regions(points: np.ndarray, layout: ScreenLayout) -> np.ndarray:
     """Region code (int32) of marker-plane points (..., 2); NaN points see the wall."""
-    col = points[..., 0] / layout.cell_m + layout.ring
-    row = points[..., 1] / layout.cell_m + layout.ring
-    lo, hi = layout.screen_top_m, layout.screen_top_m + layout.screen_side_m
-    inside_screen = ((points[..., 0] >= lo) & (points[..., 0] < hi)
-                     & (points[..., 1] >= lo) & (points[..., 1] < hi))
-    in_marker = (col >= 0) & (col < layout.side) & (row >= 0) & (row < layout.side)
-    cell = (np.floor(np.where(in_marker, row, 0)) * layout.side
-            + np.floor(np.where(in_marker, col, 0))).astype(np.int32)
-    return np.where(in_marker, cell, np.where(inside_screen, SCREEN, WALL)).astype(np.int32)
+    flat = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    return _regions(flat, plane_geometry(layout)).reshape(points.shape[:-1])
 
 
 def screen_fraction(points: np.ndarray, layout: ScreenLayout) -> np.ndarray:
@@ -91,23 +123,23 @@ def _group_cells(region: np.ndarray):
 
 
 @numba.njit(cache=True)
-def _static_window(t0, t1, j_start, pix_index, pix_v, pix_const, ptr, cells, weights,
-                   k_first, target, at_switch, start_refresh, period, scan, tau_rise, tau_fall,
+def _static_window(t1, j_start, pix_v, pix_const, ptr, cells, weights, k_first, target,
+                   at_switch, start_refresh, period, scan, tau_rise, tau_fall, pwm, next_switch,
                    level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p):
-    """Events of the still-camera pixels ``j_start ..`` in [t0, t1). Returns (next pixel, count):
-    stops early, with that pixel untouched, when the output is full."""
+    """Events of the still-camera pixels ``j_start ..`` from their next display switch on, one
+    whole refresh at a time, for every switch before ``t1`` (events may run up to a refresh
+    period past ``t1``: the caller holds them back). Returns (next pixel, count): stops early,
+    with that pixel untouched, when the output is full."""
     n = 0
     nk = target.shape[0]
-    tau_slow = max(tau_rise, tau_fall)
-    for j in range(j_start, pix_index.shape[0]):
-        saved = (ref[j], last[j], level[j])
+    for j in range(j_start, pix_v.shape[0]):
+        if next_switch[j] >= t1:
+            continue  # this pixel's light is settled or already rendered beyond t1
+        saved = (ref[j], last[j], level[j], next_switch[j])
         n_before = n
-        v = pix_v[j]
-        k = start_refresh + math.floor((t0 - v * scan) / period)
-        while True:
-            ts = (k - start_refresh) * period + v * scan
-            if ts >= t1:
-                break
+        while next_switch[j] < t1:
+            ts = next_switch[j]
+            k = start_refresh + round((ts - pix_v[j] * scan) / period)
             kk = min(max(k - k_first, 0), nk - 1)
             a = pix_const[j]
             b_rise = 0.0
@@ -125,29 +157,85 @@ def _static_window(t0, t1, j_start, pix_index, pix_v, pix_const, ptr, cells, wei
                         b_rise += w * (lum_start - lum_end)
                 elif tau_fall > 0:
                     b_fall += w * (lum_start - lum_end)
-            ua = max(t0 - ts, 0.0)
-            ub = min(t1 - ts, period)
-            if ua == 0.0:  # the switch itself: a step where the response is instantaneous
-                jump = math.log(a + b_rise + b_fall)
-                if jump != level[j]:
-                    n = cross_linear(ts, level[j], ts, jump, j, ref, last, c_on, c_off,
-                                     refractory, out_t, out_i, out_p, n)
-                    level[j] = jump
-            if (b_rise != 0.0 or b_fall != 0.0) and ua < _SETTLED * tau_slow:
-                if b_fall == 0.0 or b_rise == 0.0 or tau_rise == tau_fall:
-                    tau = tau_rise if b_rise != 0.0 else tau_fall
-                    n, level[j] = cross_exponential(ts, ua, ub, a, b_rise + b_fall, tau, j, ref,
-                                                    last, c_on, c_off, refractory,
-                                                    out_t, out_i, out_p, n)
-                else:
-                    n = _cross_two_exponentials(ts, ua, ub, a, b_rise, tau_rise, b_fall,
-                                                tau_fall, j, level, ref, last, c_on, c_off,
-                                                refractory, out_t, out_i, out_p, n)
-            k += 1
+            n = render_segment(ts, 0.0, period, a, pix_const[j], b_rise, tau_rise, b_fall,
+                               tau_fall, pwm, j, level, ref, last, c_on, c_off, refractory,
+                               out_t, out_i, out_p, n)
+            next_switch[j] = ts + period
         if n > out_t.shape[0]:
-            ref[j], last[j], level[j] = saved
+            ref[j], last[j], level[j], next_switch[j] = saved
             return j, n_before
-    return pix_index.shape[0], n
+    return pix_v.shape[0], n
+
+
+@numba.njit(cache=True, inline="always")
+def backlight(t, pwm):
+    """1.0 if a backlight with ``pwm`` = (period, on time) in us is on at time t (on at the
+    start of each period from t = 0; period 0: always on), else 0.0."""
+    period, on = pwm
+    if period <= 0.0:
+        return 1.0
+    return 1.0 if t - period * math.floor(t / period) < on else 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def render_segment(t0, ua, ub, a_on, a_off, b_rise, tau_rise, b_fall, tau_fall, pwm, j, level,
+                   ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n):
+    """Events of pixel ``j`` over [t0 + ua, t0 + ub] after a display switch at ``t0``: its
+    irradiance is ``a_on + b_rise exp(-u/tau_rise) + b_fall exp(-u/tau_fall)`` while the
+    backlight is on and ``a_off`` while it is off (the light the screen does not emit). Steps
+    (the switch, backlight edges) fire at their instant; exponentials are crossed exactly."""
+    period, on_us = pwm
+    if period <= 0.0:
+        return _lit_piece(t0, ua, ub, a_on, b_rise, tau_rise, b_fall, tau_fall, j, level, ref,
+                          last, c_on, c_off, refractory, out_t, out_i, out_p, n)
+    cycle = math.floor((t0 + ua) / period)  # counted in whole cycles: always moves on
+    while True:
+        start = cycle * period - t0
+        if start >= ub:
+            return n
+        lo, hi = max(start, ua), min(start + on_us, ub)
+        if lo < hi:
+            n = _lit_piece(t0, lo, hi, a_on, b_rise, tau_rise, b_fall, tau_fall, j, level,
+                           ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n)
+        lo, hi = max(start + on_us, ua), min(start + period, ub)
+        if lo < hi:
+            n = _step_to(t0 + lo, math.log(a_off), j, level, ref, last, c_on, c_off,
+                         refractory, out_t, out_i, out_p, n)
+        cycle += 1
+
+
+@numba.njit(cache=True, inline="always")
+def _step_to(t, value, j, level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n):
+    """An instantaneous change of pixel ``j``'s log irradiance to ``value`` at time t."""
+    if value != level[j]:
+        n = cross_linear(t, level[j], t, value, j, ref, last, c_on, c_off, refractory, out_t,
+                         out_i, out_p, n)
+        level[j] = value
+    return n
+
+
+@numba.njit(cache=True, inline="always")
+def _lit_piece(t0, ua, ub, a, b_rise, tau_rise, b_fall, tau_fall, j, level, ref, last, c_on,
+               c_off, refractory, out_t, out_i, out_p, n):
+    """``render_segment`` over [ua, ub] with the backlight on throughout."""
+    lum = a + b_rise + b_fall  # at the switch itself
+    if ua > 0.0:
+        lum = a
+        if b_rise != 0.0:
+            lum += b_rise * math.exp(-ua / tau_rise)
+        if b_fall != 0.0:
+            lum += b_fall * math.exp(-ua / tau_fall)
+    n = _step_to(t0 + ua, math.log(lum), j, level, ref, last, c_on, c_off, refractory, out_t,
+                 out_i, out_p, n)
+    if b_rise == 0.0 and b_fall == 0.0:
+        return n
+    if b_fall == 0.0 or b_rise == 0.0 or tau_rise == tau_fall:
+        tau = tau_rise if b_rise != 0.0 else tau_fall
+        n, level[j] = cross_exponential(t0, ua, ub, a, b_rise + b_fall, tau, j, ref, last, c_on,
+                                        c_off, refractory, out_t, out_i, out_p, n)
+        return n
+    return _cross_two_exponentials(t0, ua, ub, a, b_rise, tau_rise, b_fall, tau_fall, j, level,
+                                   ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n)
 
 
 @numba.njit(cache=True)
@@ -195,6 +283,7 @@ class StaticRenderer:
         self.refractory = float(refractory_us)
         d = timeline.display
         self._tau = (d.rise_ms * 1e3, d.fall_ms * 1e3)
+        self._pwm = d.backlight_us()
         # Initial state: the screen settled on the refresh before the first one.
         first = timeline.window(timeline.start_refresh - 1, timeline.start_refresh - 1)
         lum = np.zeros(len(self.pix_index))
@@ -203,32 +292,33 @@ class StaticRenderer:
         self.level = np.log(self.pix_const + lum)
         self.ref = self.level.copy()
         self.last = np.full(len(lum), -np.inf)
-        self._capacity = 1 << 20
+        # Refresh start_refresh reaches each pixel's screen row at its scan-out delay.
+        self.next_switch = self.pix_v * d.scan_us
+        self._out = EventBuffer()
 
     def irradiance_now(self) -> np.ndarray:
         """Current irradiance (dark floor included) of the rendered pixels."""
         return np.exp(self.level)
 
     def window(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Signal events in [t0, t1): times (us, float), sensor pixel indices, polarities."""
+        """Signal events of the display switches in [t0, t1): times (us, float; up to a refresh
+        period past ``t1``), sensor pixel indices, polarities."""
         d = self.timeline.display
         tl = self.timeline
         win = tl.window(tl.refresh_at(t0, 1.0), tl.refresh_at(t1, 0.0))
         parts_t, parts_i, parts_p = [np.zeros(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
         j = 0
         while j < len(self.pix_index):
-            out_t = np.empty(self._capacity)
-            out_i = np.empty(self._capacity, np.int32)
-            out_p = np.empty(self._capacity, np.int8)
+            out_t, out_i, out_p = self._out.get()
             j_next, n = _static_window(
-                float(t0), float(t1), j, self.pix_index, self.pix_v, self.pix_const, self.ptr,
-                self.cells, self.weights, win.k_first, win.target, win.at_switch,
-                tl.start_refresh, d.period_us, d.scan_us, *self._tau, self.level, self.ref,
-                self.last, self.c_on, self.c_off, self.refractory, out_t, out_i, out_p)
-            parts_t.append(out_t[:n])
+                float(t1), j, self.pix_v, self.pix_const, self.ptr, self.cells, self.weights,
+                win.k_first, win.target, win.at_switch, tl.start_refresh, d.period_us,
+                d.scan_us, *self._tau, self._pwm, self.next_switch, self.level, self.ref, self.last,
+                self.c_on, self.c_off, self.refractory, out_t, out_i, out_p)
+            parts_t.append(out_t[:n].copy())
             parts_i.append(self.pix_index[out_i[:n]])
-            parts_p.append(out_p[:n])
+            parts_p.append(out_p[:n].copy())
             if j_next < len(self.pix_index):
-                self._capacity *= 2
+                self._out.grow()
             j = j_next
         return np.concatenate(parts_t), np.concatenate(parts_i), np.concatenate(parts_p)

@@ -134,6 +134,26 @@ class PixelArray:
 # capacity; the returned count may exceed it, and the caller then reruns with more room.
 
 
+class EventBuffer:
+    """Output arrays the kernels fill, reused from window to window (fresh multi-megabyte
+    arrays would cost a page fault per 4 KiB on every window); ``grow`` when a kernel reports
+    that they were too small."""
+
+    def __init__(self, capacity: int = 1 << 18) -> None:
+        self._arrays = self._allocate(capacity)
+
+    @staticmethod
+    def _allocate(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return np.empty(capacity), np.empty(capacity, np.int64), np.empty(capacity, np.int8)
+
+    def get(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(times, pixel indices, polarities), to be copied out before the next ``get``."""
+        return self._arrays
+
+    def grow(self) -> None:
+        self._arrays = self._allocate(2 * len(self._arrays[0]))
+
+
 @numba.njit(cache=True, inline="always")
 def _emit(t, i, p, last, refractory, out_t, out_i, out_p, n):
     if t - last[i] >= refractory:
@@ -201,30 +221,38 @@ def background_rates(sensor: SensorModel, pixels: PixelArray, intensity: np.ndar
 
 
 class BackgroundNoise:
-    """Poisson leak and shot-noise events over the whole sensor, drawn per time window."""
+    """Poisson leak and shot-noise events over the whole sensor, drawn per time window.
+
+    Each source is drawn by thinning: candidates at the highest pixel rate land on uniformly
+    random pixels and each survives with probability rate / highest rate, which is exact for
+    independent per-pixel Poisson processes and needs no search through a million-entry table.
+    """
 
     def __init__(self, leak_hz: np.ndarray, shot_hz: np.ndarray) -> None:
         self._sources = []
         for rates, polarity in ((leak_hz, 1), (shot_hz, 0)):
-            total = float(rates.sum())
-            if total > 0:
-                self._sources.append((total, np.cumsum(rates) / total, polarity))
+            peak = float(rates.max(initial=0.0))
+            if peak > 0:
+                self._sources.append((peak, rates / peak, polarity))
 
     def events(self, t0: float, t1: float, rng: np.random.Generator
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ts, idx, ps = [np.zeros(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
-        for total, cdf, polarity in self._sources:
-            n = rng.poisson(total * (t1 - t0) * 1e-6)
-            ts.append(rng.uniform(t0, t1, n))
-            idx.append(np.minimum(np.searchsorted(cdf, rng.random(n)), len(cdf) - 1))
-            ps.append(np.full(n, polarity, np.int8) if polarity else
-                      rng.choice(np.array([-1, 1], np.int8), n))
+        for peak, accept, polarity in self._sources:
+            n = rng.poisson(peak * len(accept) * (t1 - t0) * 1e-6)
+            pix = rng.integers(0, len(accept), n)
+            pix = pix[rng.random(n) < accept[pix]]
+            ts.append(rng.uniform(t0, t1, len(pix)))
+            idx.append(pix)
+            ps.append(np.full(len(pix), polarity, np.int8) if polarity else
+                      rng.choice(np.array([-1, 1], np.int8), len(pix)))
         return np.concatenate(ts), np.concatenate(idx), np.concatenate(ps)
 
 
 def to_events(t: np.ndarray, idx: np.ndarray, p: np.ndarray, width: int, sensor: SensorModel,
-              rng: np.random.Generator) -> np.ndarray:
-    """Delay, quantise to microseconds, cap the readout rate, and pack as sorted events."""
+              rng: np.random.Generator, pending: np.ndarray | None = None) -> np.ndarray:
+    """Delay, quantise to microseconds, cap the readout rate, and pack as events sorted by time
+    together with the already packed ``pending`` events (held back from an earlier window)."""
     t = t + sensor.latency_us
     if sensor.jitter_us:
         t = t + sensor.jitter_us * rng.standard_normal(len(t))
@@ -232,13 +260,43 @@ def to_events(t: np.ndarray, idx: np.ndarray, p: np.ndarray, width: int, sensor:
     if sensor.max_rate_hz is not None and len(t_us):
         keep = _readout_cap(t_us, sensor.max_rate_hz * 1e-3, rng)
         t_us, idx, p = t_us[keep], idx[keep], p[keep]
-    order = np.argsort(t_us, kind="stable")
+    if pending is not None and len(pending):
+        t_us = np.concatenate([pending["t"], t_us])
+        idx = np.concatenate([pending["y"].astype(np.int64) * width + pending["x"], idx])
+        p = np.concatenate([pending["p"], p])
     ev = np.empty(len(t_us), EVENT_DTYPE)
-    ev["t"] = t_us[order]
-    ev["x"] = idx[order] % width
-    ev["y"] = idx[order] // width
-    ev["p"] = p[order]
+    if len(t_us):
+        _pack_sorted(t_us, idx.astype(np.int64, copy=False), p.astype(np.int8, copy=False),
+                     width, ev)
     return ev
+
+
+@numba.njit(cache=True)
+def _pack_sorted(t_us, idx, p, width, out):
+    """Fill ``out`` with the events sorted by time, stably. A window's events span a few
+    milliseconds, so a counting sort over its microseconds is linear and several times faster
+    than a comparison sort."""
+    lo, hi = t_us.min(), t_us.max()
+    if hi - lo > 4 * len(t_us) + 1_000_000:  # sparse events over a long span
+        order = np.argsort(t_us, kind="mergesort")
+    else:
+        start = np.zeros(hi - lo + 2, np.int64)
+        for t in t_us:
+            start[t - lo + 1] += 1
+        for k in range(1, len(start)):
+            start[k] += start[k - 1]
+        order = np.empty(len(t_us), np.int64)
+        for j in range(len(t_us)):
+            k = t_us[j] - lo
+            order[start[k]] = j
+            start[k] += 1
+    for n in range(len(order)):
+        j = order[n]
+        e = out[n]
+        e["t"] = t_us[j]
+        e["x"] = idx[j] % width
+        e["y"] = idx[j] // width
+        e["p"] = p[j]
 
 
 def _readout_cap(t_us: np.ndarray, per_ms: float, rng: np.random.Generator) -> np.ndarray:
