@@ -13,6 +13,37 @@ from server.settings import Settings
 
 ServeApp = Callable[..., tuple[str, FastAPI]]
 
+CHROMIUM = Path("/usr/bin/chromium")  # Debian's package, installed by `make system-deps`
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+]
+ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
+"""Screenshots the browser tests leave behind for a person to look at (git-ignored)."""
+
+
+@pytest.fixture
+def artifacts() -> Path:
+    ARTIFACTS.mkdir(exist_ok=True)
+    return ARTIFACTS
+
+
+@pytest.fixture
+def browser():
+    """Headless Chromium driven by Playwright. A missing browser fails the test: the page
+    tests are part of the suite, not an optional extra."""
+    assert CHROMIUM.exists(), f"{CHROMIUM} is missing: install it with `make system-deps`"
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        chromium = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+
 
 @pytest.fixture
 def serve_app(tmp_path: Path) -> Iterator[ServeApp]:

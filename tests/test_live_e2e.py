@@ -16,15 +16,7 @@ import pytest
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-]
 ROOT = Path(__file__).resolve().parent.parent
-ARTIFACTS = ROOT / "test-artifacts"
 TOKEN = "e2e-token"
 TEXT = "Hello from the virtual event camera, through the whole live system!"
 
@@ -40,9 +32,10 @@ def request(base_url: str, path: str, body: dict, **headers: str) -> dict:
         return json.load(response)
 
 
-def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(serve_app, tmp_path):
-    assert CHROMIUM.exists(), f"{CHROMIUM} is missing: install it with `make system-deps`"
-    from playwright.sync_api import expect, sync_playwright
+def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
+    serve_app, browser, artifacts, tmp_path
+):
+    from playwright.sync_api import expect
 
     base_url, _ = serve_app(token=TOKEN)
     message = request(
@@ -80,22 +73,18 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(serve_app
     )
     digest = hashlib.sha256(TEXT.encode()).hexdigest()
     try:
-        with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-            page = browser.new_page(viewport={"width": 1100, "height": 760})
-            page.goto(f"{base_url}/dashboard")
-            expect(page.locator("#connection")).to_have_text("live")
-            row = page.locator(f'#receptions li[data-sha256="{digest}"]')
-            expect(row).to_contain_text("hello.txt", timeout=180_000)
-            expect(row).to_contain_text("matches upload")
-            expect(page.locator("#pose-readout")).to_contain_text("distance", timeout=30_000)
-            expect(page.locator("#tracking-state")).to_have_text("tracking", timeout=30_000)
-            page.wait_for_timeout(1500)  # let the sparklines take a few samples
-            ARTIFACTS.mkdir(exist_ok=True)
-            page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)
-            readout = page.locator("#pose-readout").text_content()
-            href = row.locator("a").get_attribute("href")
-            browser.close()
+        page = browser.new_page(viewport={"width": 1100, "height": 760})
+        page.goto(f"{base_url}/dashboard")
+        expect(page.locator("#connection")).to_have_text("live")
+        row = page.locator(f'#receptions li[data-sha256="{digest}"]')
+        expect(row).to_contain_text("hello.txt", timeout=180_000)
+        expect(row).to_contain_text("matches upload")
+        expect(page.locator("#pose-readout")).to_contain_text("distance", timeout=30_000)
+        expect(page.locator("#tracking-state")).to_have_text("tracking", timeout=30_000)
+        page.wait_for_timeout(1500)  # let the sparklines take a few samples
+        page.screenshot(path=str(artifacts / "dashboard.png"), full_page=True)
+        readout = page.locator("#pose-readout").text_content()
+        href = row.locator("a").get_attribute("href")
     finally:
         daemon.send_signal(signal.SIGTERM)
         _, log = daemon.communicate(timeout=60)

@@ -18,14 +18,6 @@ from server.settings import Settings
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-]
-ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 MESSAGE = b"Motion-aware optical camera communication, drawn one refresh at a time. " * 4
 CELL_PX = 10
 CAPTURED = 36
@@ -64,35 +56,28 @@ def decode_capture(item: dict) -> np.ndarray:
     return rgba.reshape(item["height"], item["width"], 4)
 
 
-def test_transmitter_draws_each_frame_pixel_exact_in_order(base_url: str) -> None:
-    assert CHROMIUM.exists(), f"{CHROMIUM} is missing: install it with `make system-deps`"
-    from playwright.sync_api import sync_playwright
-
+def test_transmitter_draws_each_frame_pixel_exact_in_order(
+    base_url: str, browser, artifacts: Path
+) -> None:
     message = post_message(base_url, "name=page.txt&profile=robust&cells=16")
     url = f"{base_url}/transmitter?id={message['id']}&cell_px={CELL_PX}&capture={CAPTURED}"
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 960, "height": 600}, device_scale_factor=1)
-            page.goto(url)
-            page.wait_for_selector("#warning[open]")
-            assert page.is_disabled("#play"), "must not start before the warning is acknowledged"
-            page.click("#acknowledge")
-            page.wait_for_function("!document.querySelector('#play').disabled")
-            page.click("#play")
-            page.wait_for_function(f"window.eventocc.captured.length >= {CAPTURED}", timeout=60_000)
-            page.wait_for_timeout(1500)  # let the overlay and status report catch up
-            captured = page.evaluate("window.eventocc.capturedBase64()")
-            page.evaluate(PAUSE_ON_DATA_FRAME)
-            state = page.evaluate(STATE)
-            ARTIFACTS.mkdir(exist_ok=True)
-            page.screenshot(path=ARTIFACTS / "transmitter.png")
-            page.keyboard.press("Space")
-            assert page.evaluate("window.eventocc.playing"), "space starts"
-            page.keyboard.press("Space")
-            assert not page.evaluate("window.eventocc.playing"), "space pauses"
-        finally:
-            browser.close()
+    page = browser.new_page(viewport={"width": 960, "height": 600}, device_scale_factor=1)
+    page.goto(url)
+    page.wait_for_selector("#warning[open]")
+    assert page.is_disabled("#play"), "must not start before the warning is acknowledged"
+    page.click("#acknowledge")
+    page.wait_for_function("!document.querySelector('#play').disabled")
+    page.click("#play")
+    page.wait_for_function(f"window.eventocc.captured.length >= {CAPTURED}", timeout=60_000)
+    page.wait_for_timeout(1500)  # let the overlay and status report catch up
+    captured = page.evaluate("window.eventocc.capturedBase64()")
+    page.evaluate(PAUSE_ON_DATA_FRAME)
+    state = page.evaluate(STATE)
+    page.screenshot(path=artifacts / "transmitter.png")
+    page.keyboard.press("Space")
+    assert page.evaluate("window.eventocc.playing"), "space starts"
+    page.keyboard.press("Space")
+    assert not page.evaluate("window.eventocc.playing"), "space pauses"
 
     encoder = StreamEncoder(MESSAGE, name="page.txt", profile="robust", cells=16)
     assert [c["frameIndex"] for c in captured] == list(range(CAPTURED))
