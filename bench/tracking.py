@@ -25,7 +25,9 @@ from receiver.sim import Display, HandHeldMotion, Scene, SensorModel, simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
-CAMERA = CameraModel(346, 260, np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]]))
+# A small sensor (DAVIS240-like, intrinsics scaled from the 346x260 ones): the hand-held simulator
+# path costs about a minute of CPU per simulated second even at this size.
+CAMERA = CameraModel(240, 180, np.array([[208.0, 0, 120], [0, 208.0, 90], [0, 0, 1]]))
 MESSAGE = bytes(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8))
 
 
@@ -46,7 +48,8 @@ def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
         log.add(rx.push(chunk))
     row = {"flow": flow_px_per_ms, "seed": seed, "ate_cm": np.nan, "rpe_cm": np.nan,
            "rpe_deg": np.nan, "ber": log.ber, "decoded": [m.message.data for m in log.messages]
-           == [MESSAGE], "pose_hz": np.nan, "losses": rx.stats.losses}
+           == [MESSAGE], "pose_hz": np.nan, "losses": rx.stats.losses,
+           "lock_ms": rx.stats.lock_times_us[0] / 1e3 if rx.stats.lock_times_us else None}
     t = np.array(log.pose_t)
     if len(t) >= 3:
         err = pose_errors(t, np.array(log.poses), rec.pose_at(t), delta_us=10_000)
@@ -61,22 +64,26 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="one seed, one speed, 1 s")
     args = parser.parse_args()
-    flows, seeds, duration = ((0.5,), (0,), 1.0) if args.quick else ((0.5, 1, 2, 4), range(5), 1.5)
+    flows, seeds, duration = ((0.5,), (0,), 1.0) if args.quick else ((0.5, 1, 2), range(2), 1.0)
     rows = []
     for flow in flows:
         for seed in seeds:
             rows.append(run_one(flow, seed, duration))
             print(rows[-1], flush=True)
     lines = ["| flow px/ms | seed | ATE cm | RPE cm / 10 ms | RPE deg | BER | decoded | "
-             "pose updates/s | losses |", "|---|---|---|---|---|---|---|---|---|"]
+             "pose updates/s | losses | first lock ms |", "|---" * 10 + "|"]
     for r in rows:
         ber = "-" if r["ber"] is None else f"{r['ber']:.4f}"
+        lock = "never" if r["lock_ms"] is None else f"{r['lock_ms']:.0f}"
         lines.append(f"| {r['flow']} | {r['seed']} | {r['ate_cm']:.2f} | {r['rpe_cm']:.2f} | "
                      f"{r['rpe_deg']:.2f} | {ber} | {'yes' if r['decoded'] else 'no'} | "
-                     f"{r['pose_hz']:.0f} | {r['losses']} |")
-    body = (f"HandHeldMotion at 0.6 m, N = 16, robust profile, gen4-indoor sensor, 346x260 "
+                     f"{r['pose_hz']:.0f} | {r['losses']} | "
+                     f"{lock} |")
+    body = (f"HandHeldMotion at 0.6 m, N = 16, robust profile, gen4-indoor sensor, 240x180 "
             f"camera, {duration} s clips. ATE after a rigid Umeyama fit (scale fixed at 1 by "
-            "the marker size). Targets: ATE <= 1 cm, every message decoded, >= 1 kHz poses.\n\n"
+            "the marker size). Targets: ATE <= 1 cm, every message decoded, >= 1 kHz poses. "
+            "'never' under first lock: the detector did not lock during the clip (detection "
+            "under hand-held motion is a known gap; ATE etc. then have nothing to score).\n\n"
             + "\n".join(lines))
     write_section("tracking", "Hand-held tracking",
                   "python -m bench.tracking" + (" --quick" if args.quick else ""), body)

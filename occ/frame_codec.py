@@ -4,6 +4,11 @@ interleaved and whitened onto the N x N payload cells, and back.
 The frame's ``N * N // 8`` whole bytes are split into ``ceil(bytes / 255)`` equal RS codewords
 (the few bytes and cells left over carry only the whitening). Each codeword spends
 ``profile.parity_fraction`` of its bytes on parity (an even count, at least 2).
+
+Whitening is two XORs. Before the Reed-Solomon code, everything but the CRC is XORed with bytes
+keyed by the CRC (``framing.keyed_whitening``), so no field repeats from frame to frame; the
+receiver reads the CRC after correcting the codewords and undoes it. Then all cells are XORed
+with a fixed mask, which balances black and white cells in the CRC too.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from occ.framing import (
     cells_to_bytes,
     deinterleave,
     interleave,
+    keyed_whitening,
     seal,
     unseal,
     whitening_mask,
@@ -48,15 +54,28 @@ class FrameCodec:
         self.rs = ReedSolomon(n, n - nsym)
         self.mask = whitening_mask(cells)
         self.coded_bytes = self.codewords * n
+        self.frame_bytes = frame_bytes
+        sealed = OVERHEAD + self.symbol_size
+        self._crc = slice(sealed - FrameHeader.CRC_SIZE, sealed)
+
+    def _keyed(self, key: bytes) -> np.ndarray:
+        """The keyed whitening of a frame's data bytes, then of its left-over bytes; zero on the
+        CRC."""
+        left_over = self.frame_bytes - self.coded_bytes
+        mask = keyed_whitening(key, self.codewords * self.rs.k + left_over)
+        mask[self._crc] = 0
+        return mask
 
     def encode(self, header: FrameHeader, symbol: bytes) -> np.ndarray:
         """(cells, cells) uint8 bits of one data frame."""
         if len(symbol) != self.symbol_size:
             raise ValueError(f"symbol must be {self.symbol_size} bytes, got {len(symbol)}")
-        sealed = seal(header, symbol).ljust(self.codewords * self.rs.k, b"\0")
-        data = np.frombuffer(sealed, dtype=np.uint8)
+        sealed = seal(header, symbol)
+        size = self.codewords * self.rs.k
+        mask = self._keyed(sealed[self._crc])
+        data = np.frombuffer(sealed.ljust(size, b"\0"), dtype=np.uint8) ^ mask[:size]
         coded = interleave(self.rs.encode(data.reshape(self.codewords, self.rs.k)))
-        return bytes_to_cells(coded, self.cells) ^ self.mask
+        return bytes_to_cells(np.concatenate([coded, mask[size:]]), self.cells) ^ self.mask
 
     def decode(
         self, bits: np.ndarray, confidence: np.ndarray | None = None
@@ -70,7 +89,9 @@ class FrameCodec:
         data, ok = self.rs.decode(deinterleave(coded, self.codewords), erasures)
         if not ok.all():
             return None
+        data = data.reshape(-1)
+        data = data ^ self._keyed(data[self._crc].tobytes())[: data.size]
         try:
-            return unseal(data.tobytes()[: OVERHEAD + self.symbol_size])
+            return unseal(data[: self._crc.stop].tobytes())
         except FramingError:
             return None

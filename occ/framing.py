@@ -59,6 +59,15 @@ def whitening_mask(cells: int) -> np.ndarray:
     return rng.integers(0, 2, size=(cells, cells), dtype=np.uint8)
 
 
+def keyed_whitening(key: bytes, nbytes: int) -> np.ndarray:
+    """``nbytes`` pseudo-random bytes chosen by ``key`` (a frame's CRC). XORed onto everything
+    but the key itself, they make fields that repeat from frame to frame (the header) look
+    different in every frame: under ``fast``'s differential cells, a cell with the same bit in
+    every frame would otherwise toggle on every refresh, in lockstep with the inner locator."""
+    rng = np.random.default_rng(0x0CC1 << 16 | int.from_bytes(key, "big"))
+    return rng.integers(0, 256, size=nbytes, dtype=np.uint8)
+
+
 @dataclass(frozen=True)
 class FrameHeader:
     """The header of a framed (robust/fast) data frame, followed by one fountain symbol and a

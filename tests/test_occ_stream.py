@@ -298,3 +298,13 @@ def test_bad_refresh_indices_and_shapes() -> None:
         dec.push(np.zeros((16, 16), np.uint8), np.ones(3))
     with pytest.raises(ValueError, match="valid profiles"):
         StreamDecoder(profile="nope")
+
+
+def test_fast_cells_do_not_toggle_in_lockstep_with_the_inner_locator() -> None:
+    # The header repeats from frame to frame; whitened by a key that changes with every frame,
+    # no payload cell carries the same symbol bit for long, so none blinks like the locator.
+    enc = StreamEncoder(bytes(range(256)) * 8, profile="fast", cells=32)
+    symbols = np.array([enc.payload_bits(k) for k in range(1, 41) if enc.is_data_frame(k)])
+    assert len(symbols) > 30
+    always_one = np.all(symbols == 1, axis=0)
+    assert not always_one.any()

@@ -64,8 +64,9 @@ def _scene(
 STATIC = StaticMotion(distance_m=0.6, tilt_deg=0.0, roll_deg=0.0)
 
 
-def test_static_robust_recovers_the_message_with_zero_ber():
+def test_static_robust_locks_fast_and_recovers_the_message_with_zero_ber():
     log, rec = _run(_scene("robust", STATIC, "gen4-indoor"), 1.6)
+    assert log.receiver.stats.lock_times_us[0] <= 100_000  # a few blink periods, not 0.5 s
     assert [m.message.data for m in log.messages] == [MESSAGE]
     assert log.ber is not None and log.ber < 0.01
     assert log.receiver.stats.losses == 0

@@ -12,7 +12,7 @@ from occ.marker import MarkerGeometry
 from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.events import make_events
-from receiver.pipeline.buffer import EventBuffer
+from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from receiver.pipeline.config import FilterParams, ReceiverConfig
 from receiver.pipeline.decoder import CellReader, FrameClock
 from receiver.pipeline.detector import (
@@ -26,6 +26,7 @@ from receiver.pipeline.filters import EventFilter
 from receiver.pipeline.metrics import pose_errors, umeyama
 from receiver.pipeline.pose import project_ideal, refine_pose
 from receiver.pipeline.report import FrameTruth
+from receiver.pipeline.triage import EventTriage
 from receiver.poses import make_pose
 
 K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
@@ -111,17 +112,79 @@ def test_umeyama_undoes_a_rigid_motion_and_ate_is_zero():
         umeyama(pos[:2], pos[:2])
 
 
-def test_buffer_keeps_columns_with_ideal_coordinates_and_cuts_time_windows():
-    cam = CameraModel(8, 8, K, np.array([-0.1, 0.0, 0.0, 0.0, 0.0]))
-    buf = EventBuffer(cam.undistort_table, keep_us=100)
-    buf.append(make_events([0, 10, 20], [1, 2, 3], [4, 5, 6], [1, -1, 1]))
+def test_buffer_keeps_raw_chunks_and_cuts_time_windows():
+    buf = EventBuffer(keep_us=100)
+    first = make_events([0, 10, 20], [1, 2, 3], [4, 5, 6], [1, -1, 1])
+    buf.append(first)
     buf.append(make_events([30, 40], [7, 0], [1, 2], [1, 1]))
+    assert np.shares_memory(buf.between(0, 15), first)  # kept as they came, not copied
     window = buf.between(10, 35)
     assert window["t"].tolist() == [10, 20, 30] and window["x"].tolist() == [2, 3, 7]
-    assert np.allclose(window["xu"], cam.undistort_table[[5, 6, 1], [2, 3, 7], 0])
-    assert window[window["p"] > 0]["t"].tolist() == [20, 30]
+    assert len(buf.between(50, 60)) == 0
     buf.append(make_events([300], [0], [0], [1]))  # older chunks fall out of the window
     assert buf.span == (300, 300)
+
+
+def test_columns_carry_ideal_coordinates_from_the_undistortion_table():
+    cam = CameraModel(8, 8, K, np.array([-0.1, 0.0, 0.0, 0.0, 0.0]))
+    cols = to_columns(make_events([0, 10, 20], [1, 2, 3], [4, 5, 6], [1, -1, 1]),
+                      cam.undistort_table)
+    assert np.allclose(cols["xu"], cam.undistort_table[[4, 5, 6], [1, 2, 3], 0])
+    assert cols[cols["p"] > 0]["t"].tolist() == [0, 20]
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.integers(0, 50), max_size=30), st.integers(-5, 60))
+def test_first_at_matches_searchsorted(times, value):
+    t = np.sort(np.array(times, np.int64))
+    assert first_at(t, value) == np.searchsorted(t, value)
+
+
+def _triage(both: bool = False) -> EventTriage:
+    cam = CameraModel(32, 24, K)
+    return EventTriage(cam.undistort_table, gap_us=1000, both_polarities=both, epoch_us=0)
+
+
+def test_triage_keeps_when_each_pixel_burst_began():
+    triage = _triage()
+    # pixel (3, 4): a burst at 100..300, another at 5000; pixel (5, 6): ON at 400, OFF at 5100
+    triage(make_events([100, 200, 300, 400, 5000, 5100], [3, 3, 3, 5, 3, 5], [4, 4, 4, 6, 4, 6],
+                       [1, 1, 1, 1, 1, -1]))
+    bursts = triage.bursts(0, 1000, (0, 32, 0, 24))
+    # (3, 4) began again at 5000; (5, 6) went off at 5100, which an ON-only surface ignores
+    assert bursts["t"].tolist() == [400] and bursts["x"].tolist() == [5]
+    later = triage.bursts(1000, 6000, (0, 32, 0, 24))
+    assert later["t"].tolist() == [5000] and later["p"].tolist() == [1]
+    assert len(triage.bursts(0, 6000, (0, 3, 0, 24))) == 0  # outside the box
+    both = _triage(both=True)
+    both(make_events([100, 5100], [5, 5], [6, 6], [1, -1]))
+    assert sorted(both.bursts(0, 6000, (0, 32, 0, 24))["p"].tolist()) == [-1, 1]
+
+
+def test_triage_passes_only_events_near_the_tracked_edges():
+    triage = _triage()
+    events = make_events([1, 2, 3], [2, 30, 16], [2, 20, 2], [1, -1, 1])
+    assert len(triage(events)) == 0  # nothing tracked yet
+    triage.track_near(np.array([[0.0, 0.0]]), np.array([[31.0, 0.0]]), reach_px=4.0)
+    near = triage(events)
+    assert near["t"].tolist() == [1, 3]  # the top row; the far corner stays out
+    assert np.allclose(near["xu"], [2, 16]) and near["p"].tolist() == [1, 1]
+
+
+def test_triage_reset_forgets_bursts_and_edges():
+    triage = _triage()
+    triage.track_near(np.array([[0.0, 0.0]]), np.array([[31.0, 0.0]]), reach_px=4.0)
+    triage(make_events([10], [2], [2], [1]))
+    triage.reset(epoch_us=100)
+    assert len(triage.bursts(0, 200, (0, 32, 0, 24))) == 0
+    assert len(triage(make_events([150], [2], [2], [1]))) == 0  # no edges tracked any more
+
+
+def test_triage_surface_survives_a_long_stream():
+    triage = _triage()
+    late = (1 << 31) + 123  # beyond int32 microseconds since the epoch
+    triage(make_events([late, late + 10], [1, 1], [1, 1], [1, 1]))
+    assert triage.bursts(late - 5, late + 5, (0, 32, 0, 24))["t"].tolist() == [late]
 
 
 def test_locator_band_is_the_outer_cell_of_the_blinking_square():

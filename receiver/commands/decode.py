@@ -123,5 +123,8 @@ def _summarise(report: dict) -> None:
         print(f"BER before FEC {report['ber']:.2e}")
     for m in report["messages"]:
         print(f"message {m['name'] or '(unnamed)'}: {m['size']} bytes, sha256 {m['sha256']}")
+    if report["realtime_factor"] is not None:
+        stages = ", ".join(f"{k} {v:.2f}" for k, v in sorted(report["cpu_s"].items()))
+        print(f"real-time factor {report['realtime_factor']:.2f} (CPU s per stage: {stages})")
     if not report["messages"]:
         print("no message completed (wrong --profile/--cells, or too short a recording?)")

@@ -1,9 +1,9 @@
-"""A time-bounded buffer of recent events with their undistorted coordinates, kept as chunks so
-that appending and trimming never copy the whole window.
+"""A time-bounded buffer of recent raw event chunks, and the column form of events that the
+compiled kernels downstream read.
 
-Events are stored as contiguous columns rather than one structured array: the compiled
-kernels downstream then read each field at full memory speed, and slicing a time window copies
-only the columns' bytes.
+The buffer keeps references to the chunks as they came (no copy: at a million-pixel sensor's
+event rates even one copy of every event costs more than the rest of the receiver). Only the
+windows somebody asks for become columns, with their undistorted coordinates.
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ from dataclasses import dataclass, fields
 
 import numba
 import numpy as np
+
+from receiver.events import EVENT_DTYPE
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,7 @@ class EventColumns:
 
 @numba.njit(cache=True, nogil=True)
 def _columns(t, x, y, p, table):
-    """One pass over the (strided) fields of a structured chunk: contiguous copies plus the
+    """One pass over the (strided) fields of a structured array: contiguous copies plus the
     ideal coordinates looked up in the undistortion table."""
     n = t.shape[0]
     ct, cx, cy = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16)
@@ -69,39 +71,63 @@ def _columns(t, x, y, p, table):
     return ct, cx, cy, cp, xu, yu
 
 
-class EventBuffer:
-    def __init__(self, undistort_table: np.ndarray, keep_us: int) -> None:
-        self._table = np.ascontiguousarray(undistort_table, np.float32)
-        self.keep_us = keep_us
-        self._chunks: deque[EventColumns] = deque()
+@numba.njit(cache=True, nogil=True)
+def first_at(t: np.ndarray, value: int) -> int:
+    """Index of the first ``t >= value`` in sorted ``t``: ``np.searchsorted`` without the
+    contiguous copy it makes of a structured array's field."""
+    lo, hi = 0, t.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if t[mid] < value:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
-    def append(self, events: np.ndarray) -> EventColumns:
-        """Store ``events`` (structured, ``EVENT_DTYPE``); returns them as columns."""
-        out = EventColumns(
-            *_columns(events["t"], events["x"], events["y"], events["p"], self._table)
-        )
-        if len(out):
-            self._chunks.append(out)
-            newest = int(out.t[-1])
-            while self._chunks and int(self._chunks[0].t[-1]) < newest - self.keep_us:
-                self._chunks.popleft()
-        return out
+
+def to_columns(events: np.ndarray, undistort_table: np.ndarray) -> EventColumns:
+    """Structured events (``EVENT_DTYPE``) as columns with their ideal coordinates."""
+    return EventColumns(
+        *_columns(events["t"], events["x"], events["y"], events["p"], undistort_table)
+    )
+
+
+class EventBuffer:
+    def __init__(self, keep_us: int) -> None:
+        self.keep_us = keep_us
+        self._chunks: deque[np.ndarray] = deque()
+
+    def append(self, events: np.ndarray) -> None:
+        """Keep ``events`` (structured, ``EVENT_DTYPE``, time-sorted up to jitter)."""
+        if not len(events):
+            return
+        self._chunks.append(events)
+        newest = int(events["t"][-1])
+        while int(self._chunks[0]["t"][-1]) < newest - self.keep_us:
+            self._chunks.popleft()
 
     @property
     def span(self) -> tuple[int, int] | None:
         if not self._chunks:
             return None
-        return int(self._chunks[0].t[0]), int(self._chunks[-1].t[-1])
+        return int(self._chunks[0]["t"][0]), int(self._chunks[-1]["t"][-1])
 
-    def between(self, t0: int, t1: int) -> EventColumns:
-        """Events with ``t0 <= t < t1`` (chunks are sorted up to sensor jitter)."""
+    def parts_between(self, t0: int, t1: int) -> list[np.ndarray]:
+        """Views of the kept chunks cut to ``t0 <= t < t1``, in time order."""
         parts = []
         for chunk in self._chunks:
-            ts = chunk.t
+            ts = chunk["t"]
             if ts[-1] < t0 or ts[0] >= t1:
                 continue
-            parts.append(chunk[np.searchsorted(ts, t0) : np.searchsorted(ts, t1)])
-        return EventColumns.concatenate(parts) if parts else EventColumns.empty()
+            parts.append(chunk[first_at(ts, t0) : first_at(ts, t1)])
+        return parts
+
+    def between(self, t0: int, t1: int) -> np.ndarray:
+        """Structured events with ``t0 <= t < t1`` (one array: a copy if they span chunks)."""
+        parts = self.parts_between(t0, t1)
+        if len(parts) == 1:
+            return parts[0]
+        return np.concatenate(parts) if parts else np.empty(0, EVENT_DTYPE)
 
     def clear(self) -> None:
         self._chunks.clear()

@@ -28,8 +28,15 @@ class FilterParams:
 class DetectorParams:
     """Temporal + spatial detection (Sec. IV-B)."""
 
-    window_us: int = 500_000
-    """DFT window T; also the interval between detection attempts."""
+    window_us: int = 70_000
+    """DFT window T: two blink periods at 60 Hz are enough to lock (the paper's 0.5 s made the
+    receiver wait half a second before it could read anything)."""
+    retry_us: int = 35_000
+    """Interval between detection attempts, each over the latest window: the marker locks
+    within about a window plus a retry of coming into view."""
+    max_cpu_share: float = 0.5
+    """Failed attempts are spaced further apart when they cost more than this share of one
+    core: on a megapixel sensor an attempt over a crowded window takes longer than the window."""
     sigma_frac: float = 0.1
     """Width of the triplet-period Gaussian, as a fraction of the blink frequency."""
     heat_threshold: float = 0.2
@@ -40,6 +47,10 @@ class DetectorParams:
     """Corner angles must lie within ~66..114 deg (perspective bends the paper's 90 +- 15)."""
     max_side_ratio: float = 1.8
     """Longest over shortest side of the locator quadrilateral."""
+    min_period_match: float = 0.2
+    """Mean Gaussian weight of the region's triplets: ~0.9 at the right blink frequency with a
+    still camera, ~0.3 under hand-held motion (swept edges flip at any period), ~0.1 at a
+    display 10 Hz off (one sigma is ``sigma_frac`` of the frequency)."""
     min_harmonic_ratio: float = 0.08
     """|X_k| / X_0 of the ROI's signed event count; noise gives ~1/sqrt(events), ``fast`` ~0.15."""
     min_orientation_score: float = 0.25
@@ -59,12 +70,17 @@ class TrackerParams:
     max_update_interval_us: int = 1000
     """At least one pose update per interval while new events join the clusters, even if no
     indicator fired (the 1 kHz pose-rate target holds under slow motion too)."""
-    capture_us: int = 5000
-    """Recent events used to pull a detected pose onto the ring's edges."""
+    capture_us: int = 0
+    """Recent events used to pull a detected pose onto the ring's edges (0: off). Off by
+    default: with a still camera the only events near the ring are noise, and capture then
+    moves a correct pose by centimetres."""
     fit_min_events: int = 400
     """Events near the edges needed before their on-edge share (the fit ratio) is judged."""
-    min_fit_ratio: float = 0.5
-    """Below this on-edge share the pose has slipped off the marker: tracking is lost."""
+    min_fit_ratio: float = 0.0
+    """Below this on-edge share the pose has slipped off the marker: tracking is lost (0: off).
+    Off by default: with a still camera the events near the ring are noise and the blinking
+    locator one ring width inside, so correct poses score 0-50%; loss is then caught by the
+    locator check and the view check instead."""
     max_age_us: int = 30_000
     """Slots older than this are stale and leave the cluster."""
     huber_px: float = 1.0

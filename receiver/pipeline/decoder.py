@@ -1,23 +1,25 @@
-"""Data decoding (paper Sec. IV-D): read the cells of one data frame from its events.
+"""Data decoding (paper Sec. IV-D): read the cells of one data frame from its pixels' bursts.
 
-Every event of the frame's time span is mapped to the locator grid (column, row in cells) by
-the plane homography of the pose current at its time (``steps`` poses per frame, the full camera
-model through the undistorted event coordinates: never the authors' affine approximation). A
-cell then reads as the share of its inner pixels that fired inside the frame's gate: the time
-the display's scan-out reaches the cell's row (the clock below), plus the pixel response.
+Each pixel is read once per frame, as the paper ORs its samples: the pipeline's triage keeps, per
+pixel and polarity, the time its latest burst of events began (``triage.EventTriage``), and a
+frame sees the pixels whose burst began inside its time span. Every such pixel is mapped to the
+locator grid (column, row in cells) by the plane homography of the pose current at its burst
+(``steps`` poses per frame, the full camera model through the undistorted coordinates: never
+the authors' affine approximation). A cell then reads as the share of its inner pixels that
+fired inside the frame's gate: the time the display's scan-out reaches the cell's row (the
+clock below), plus the pixel response.
 
-- ``paper`` / ``robust`` (data frame + blank frame): ON events only; a white cell lights up.
-- ``fast`` (one differential symbol per refresh): events of either polarity; a cell that toggles
-  (bit 1) fires ON or OFF events in that refresh, an untoggled one fires none. The inner locator
-  is shown on even refreshes only, so its white cells toggle every refresh and read as 1.
+- ``paper`` / ``robust`` (data frame + blank frame): ON bursts only; a white cell lights up.
+- ``fast`` (one differential symbol per refresh): bursts of either polarity; a cell that toggles
+  (bit 1) fires ON or OFF in that refresh, an untoggled one fires none. The inner locator is
+  shown on even refreshes only, so its white cells toggle every refresh and read as 1.
 
-Pixels count once per frame (the union over the pose steps, as the paper ORs its samples). The
-inner locator's known white and black cells set a per-frame threshold, a per-cell confidence
+The inner locator's known white and black cells set a per-frame threshold, a per-cell confidence
 and a score that says whether the marker is really there.
 
-The frame clock is re-estimated from the ON events of the locator's white cells, row by row, at
+The frame clock is re-estimated from the ON bursts of the locator's white cells, row by row, at
 every frame where the locator rises, so neither a display/receiver clock mismatch nor the
-scan-out slope drifts. OFF events never feed it: a pixel's luminance falls exponentially, so
+scan-out slope drifts. OFF bursts never feed it: a pixel's luminance falls exponentially, so
 its OFF events spread over several milliseconds, while its ON events bunch at the switch.
 """
 
@@ -31,6 +33,7 @@ from itertools import pairwise
 import numba
 import numpy as np
 
+from receiver.pipeline.buffer import EventColumns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.detector import ring_cells
 from receiver.pipeline.pose import plane_homography
@@ -54,8 +57,8 @@ class FrameRead:
     confidence: np.ndarray
     locator_score: float
     """Michelson contrast of the inner locator's white and black cells: ~1 seen, ~0 absent."""
-    events: int
-    """Events inside the frame's gates on the cells."""
+    pixels: int
+    """Pixel bursts inside the frame's gates on the cells."""
 
 
 class FrameClock:
@@ -95,15 +98,16 @@ class FrameClock:
 # --- per-event kernels ---------------------------------------------------------------------------
 @numba.njit(cache=True, nogil=True)
 def _grid_coords(t, xu, yu, step_edges, to_grid):
-    """Locator-grid (column, row) of each event through the homography of its time step."""
+    """Locator-grid (column, row) of each pixel burst through the homography of its time step
+    (bursts come in pixel order, not time order)."""
     n = t.shape[0]
     u = np.empty(n, np.float32)
     v = np.empty(n, np.float32)
     last = step_edges.shape[0] - 2
-    s = 0
     for i in range(n):
+        s = 0
         while s < last and t[i] >= step_edges[s + 1]:
-            s += 1  # events are time-sorted up to jitter: the step only moves forward
+            s += 1
         A = to_grid[s]
         x, y = xu[i], yu[i]
         w = A[2, 0] * x + A[2, 1] * y + A[2, 2]
@@ -117,9 +121,9 @@ def _grid_coords(t, xu, yu, step_edges, to_grid):
 
 @numba.njit(cache=True, nogil=True)
 def _row_bursts(t, p, u, v, white, mid, slope, gate_lo, gate_hi, bin_us):
-    """Per locator row: (median time after the row's predicted burst, ON events) of the ON
-    events on the locator's white cells inside the gate. Medians come from a histogram of
-    ``bin_us`` bins, so a few stray events cannot tilt the clock."""
+    """Per locator row: (median time after the row's predicted burst, ON bursts) of the ON
+    bursts on the locator's white cells inside the gate. Medians come from a histogram of
+    ``bin_us`` bins, so a few stray pixels cannot tilt the clock."""
     n = white.shape[0]
     bins = int((gate_hi - gate_lo) / bin_us) + 1
     hist = np.zeros((n, bins), np.int32)
@@ -146,8 +150,8 @@ def _row_bursts(t, p, u, v, white, mid, slope, gate_lo, gate_hi, bin_us):
 
 
 @numba.njit(cache=True, nogil=True)
-def _cell_events(t, p, u, v, n, mid, slope, gate_lo, gate_hi, on_only, margin):
-    """(n, n) count of the events inside each cell's inner part and its row's time gate."""
+def _cell_bursts(t, p, u, v, n, mid, slope, gate_lo, gate_hi, on_only, margin):
+    """(n, n) count of the bursts inside each cell's inner part and its row's time gate."""
     count = np.zeros((n, n), np.int32)
     for i in range(t.shape[0]):
         if on_only and p[i] <= 0:
@@ -204,8 +208,8 @@ class CellReader:
         self._on_only = config.data_every == 2
 
     def window(self, m: int) -> tuple[int, int]:
-        """Event time span needed for frame ``m``: the search gate until the clock has settled,
-        then the read gate, so that each event is visited about once per frame."""
+        """Time span of the bursts that frame ``m`` reads: the search gate until the clock has
+        settled, then the read gate."""
         half = abs(self.clock.slope_us) * self.n / 2
         mid = self.clock.mid(m)
         lo, hi = self._read_gate if self.clock.settled else self._search_gate
@@ -220,8 +224,30 @@ class CellReader:
         to_pixels = plane_homography(T_cam_world, self.config.camera.K)
         return self._plane_to_grid @ np.linalg.inv(to_pixels)
 
-    def read(self, m: int, ev: np.ndarray, pose_at: Callable[[float], np.ndarray]) -> FrameRead:
-        """Frame ``m`` from the events ``ev`` (t, x, y, p, xu, yu) of ``window(m)``."""
+    @property
+    def both_polarities(self) -> bool:
+        """``fast`` reads OFF bursts too."""
+        return not self._on_only
+
+    def box(self, T_cam_world: np.ndarray, pad_px: int = 4) -> tuple[int, int, int, int]:
+        """Raw-pixel box (x0, x1, y0, y1) holding the inner locator at this pose; its border is
+        sampled densely because the lens bends straight sides."""
+        n, cam = self.n, self.config.camera
+        s = np.linspace(0, n, 17)
+        zeros, full = np.zeros_like(s), np.full_like(s, n)
+        border = np.r_[np.c_[s, zeros], np.c_[s, full], np.c_[zeros, s], np.c_[full, s]]
+        plane = np.c_[border, np.ones(len(border))] @ np.linalg.inv(self._plane_to_grid).T
+        corners = np.c_[plane[:, :2], zeros.repeat(4)] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        if np.any(corners[:, 2] <= 0):
+            return 0, 0, 0, 0
+        px = cam.project(corners)
+        lo = np.floor(px.min(axis=0)).astype(int) - pad_px
+        hi = np.ceil(px.max(axis=0)).astype(int) + pad_px + 1
+        return (max(lo[0], 0), min(hi[0], cam.width), max(lo[1], 0), min(hi[1], cam.height))
+
+    def read(self, m: int, ev: EventColumns, pose_at: Callable[[float], np.ndarray]) -> FrameRead:
+        """Frame ``m`` from the pixel bursts ``ev`` (t, p, xu, yu) that began in
+        ``window(m)``."""
         n = self.n
         steps = max(1, self.config.decoder.steps)
         t = ev["t"]
@@ -233,7 +259,7 @@ class CellReader:
             self._retime(m, t, ev["p"], u, v)
         margin = self.config.decoder.cell_margin
         mid, slope = self.clock.mid(m), self.clock.slope_us
-        count = _cell_events(
+        count = _cell_bursts(
             t, ev["p"], u, v, n, mid, slope, *self._read_gate, self._on_only, margin
         )
         density = count / np.maximum(_inner_pixels(to_grid[steps // 2], n, margin), 1.0)
@@ -263,20 +289,20 @@ class CellReader:
             return
         self.clock.observe(m, self.clock.mid(m) + offset, self.clock.slope_us + slope)
 
-    def _classify(self, m: int, density: np.ndarray, events: int) -> FrameRead:
+    def _classify(self, m: int, density: np.ndarray, pixels: int) -> FrameRead:
         """Bits from the cells' event densities, against the ring's white and black cells."""
         cells = self._ring_cells
         ring = density[cells[:, 1], cells[:, 0]]
         white_ref = float(np.median(ring[self._ring_white]))
         black_ref = float(np.median(ring[~self._ring_white]))
         contrast = max(white_ref - black_ref, 1e-9)
-        # Below the midpoint: a white cell's events thin out towards its edges and under blur,
+        # Below the midpoint: a white cell's pixels thin out towards its edges and under blur,
         # while a black cell sees only noise and the sparse tail of an earlier switch.
         threshold = black_ref + _THRESHOLD * contrast
         payload = density[1:-1, 1:-1]
         bits = (payload > threshold).astype(np.uint8)
         # Full confidence a quarter of the contrast away from the threshold: in ``fast``, cells
-        # switching off trail their events past the gate and read dimmer than cells switching on.
+        # switching off start their bursts later and read dimmer than cells switching on.
         confidence = np.clip(np.abs(payload - threshold) / (0.25 * contrast), 0.0, 1.0)
         score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
-        return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, events)
+        return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels)

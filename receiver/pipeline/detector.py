@@ -20,11 +20,9 @@ import numba
 import numpy as np
 
 from occ.marker import MarkerGeometry
-from receiver.pipeline.config import DetectorParams, ReceiverConfig
-
-
-class MarkerNotFound(Exception):
-    """Detection failed; the message says which stage and why."""
+from receiver.pipeline.buffer import first_at
+from receiver.pipeline.config import ReceiverConfig
+from receiver.pipeline.locate import MarkerNotFound, check_quadrilateral, quadrilateral
 
 
 @dataclass(frozen=True)
@@ -40,10 +38,9 @@ class Detection:
 
 # --- temporal ------------------------------------------------------------------------------
 @numba.njit(cache=True, nogil=True)
-def _triplet_heat(t, x, y, p, width, height, freq_hz, sigma_hz):
-    heat = np.zeros((height, width), np.float32)
-    last_pol = np.zeros((height, width), np.int8)
-    last_flip = np.full((2, height, width), -1, np.int64)  # last neg->pos / pos->neg times
+def _triplet_heat(t, x, y, p, freq_hz, sigma_hz, heat, triplets, last_pol, last_flip):
+    """Accumulate one part of the events into ``heat`` and ``triplets``; ``last_pol`` and
+    ``last_flip`` (the last neg->pos / pos->neg times) carry each pixel's state between parts."""
     for i in range(t.shape[0]):
         xi, yi, pi = x[i], y[i], p[i]
         if pi == last_pol[yi, xi]:
@@ -55,23 +52,22 @@ def _triplet_heat(t, x, y, p, width, height, freq_hz, sigma_hz):
         if prev >= 0 and t[i] > prev:
             z = (1e6 / (t[i] - prev) - freq_hz) / sigma_hz
             heat[yi, xi] += np.exp(-0.5 * z * z)
-    return heat
+            triplets[yi, xi] += 1
 
 
 def blink_heatmap(
-    events: np.ndarray, width: int, height: int, blink_hz: float, sigma_frac: float
-) -> np.ndarray:
-    """(height, width) sum of Gaussian weights of the triplets whose period matches the blink."""
-    return _triplet_heat(
-        events["t"],
-        events["x"],
-        events["y"],
-        events["p"],
-        width,
-        height,
-        blink_hz,
-        sigma_frac * blink_hz,
-    )
+    parts: list[np.ndarray], width: int, height: int, blink_hz: float, sigma_frac: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(height, width) sums of the Gaussian weights of the triplets by how well their period
+    matches the blink, and the triplet counts, over the time-ordered parts of a window."""
+    heat = np.zeros((height, width), np.float32)
+    triplets = np.zeros((height, width), np.int32)
+    last_pol = np.zeros((height, width), np.int8)
+    last_flip = np.full((2, height, width), -1, np.int64)
+    for ev in parts:
+        _triplet_heat(ev["t"], ev["x"], ev["y"], ev["p"], blink_hz, sigma_frac * blink_hz,
+                      heat, triplets, last_pol, last_flip)
+    return heat, triplets
 
 
 def largest_region(heat: np.ndarray, threshold: float) -> np.ndarray:
@@ -137,38 +133,6 @@ def blink_phase(
 
 
 # --- spatial ---------------------------------------------------------------------------------
-def quadrilateral(points: np.ndarray) -> np.ndarray:
-    """(4, 2) float corners, clockwise on screen (y down), approximating a convex point set."""
-    hull = cv2.convexHull(points.astype(np.float32).reshape(-1, 1, 2))
-    perimeter = cv2.arcLength(hull, True)
-    for eps in np.linspace(0.01, 0.1, 19):
-        poly = cv2.approxPolyDP(hull, eps * perimeter, True).reshape(-1, 2)
-        if len(poly) <= 4:
-            break
-    if len(poly) != 4:
-        raise MarkerNotFound(f"spatial: the blinking region has {len(poly)} corners, not 4")
-    area2 = np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])
-    return (poly if area2 > 0 else poly[::-1]).astype(np.float64)
-
-
-def check_quadrilateral(quad: np.ndarray, params: DetectorParams) -> None:
-    """The paper's criteria: large enough, corners near right angles, sides of similar length."""
-    sides = np.roll(quad, -1, axis=0) - quad
-    lengths = np.linalg.norm(sides, axis=1)
-    if lengths.min() < params.min_side_px:
-        raise MarkerNotFound(
-            f"spatial: locator side {lengths.min():.0f} px is below "
-            f"{params.min_side_px:.0f} px; move closer or use fewer cells"
-        )
-    if lengths.max() / lengths.min() > params.max_side_ratio:
-        raise MarkerNotFound("spatial: the blinking region is not square (view too oblique?)")
-    cosines = np.abs(np.sum(sides * np.roll(sides, 1, axis=0), axis=1)) / (
-        lengths * np.roll(lengths, 1)
-    )
-    if cosines.max() > params.max_abs_cos:
-        raise MarkerNotFound("spatial: the blinking region's corners are not right angles")
-
-
 def ring_cells(geometry: MarkerGeometry) -> tuple[np.ndarray, np.ndarray]:
     """(k, 2) (column, row) of the inner locator's ring cells and their canonical colour."""
     loc = geometry.inner_locator
@@ -204,51 +168,73 @@ def orient(
 
 
 @numba.njit(cache=True, nogil=True)
-def _pixel_harmonics(t, x, y, p, height, width, period_us):
-    """Per pixel: the ON events' DFT at the blink frequency (re, im) and their count."""
-    acc = np.zeros((3, height, width))
+def _pixel_harmonics(t, x, y, p, x0, y0, period_us, acc):
+    """Add to ``acc`` per pixel of the box from (x0, y0): the ON events' DFT at the blink
+    frequency (re, im) and their count."""
+    y1, x1 = y0 + acc.shape[1], x0 + acc.shape[2]
     w = 2 * np.pi / period_us
     for i in range(t.shape[0]):
-        if p[i] > 0:
+        if p[i] > 0 and x0 <= x[i] < x1 and y0 <= y[i] < y1:
             a = w * t[i]
-            acc[0, y[i], x[i]] += np.cos(a)
-            acc[1, y[i], x[i]] -= np.sin(a)
-            acc[2, y[i], x[i]] += 1.0
-    return acc
+            yi, xi = y[i] - y0, x[i] - x0
+            acc[0, yi, xi] += np.cos(a)
+            acc[1, yi, xi] -= np.sin(a)
+            acc[2, yi, xi] += 1.0
 
 
 def burst_image(
-    events: np.ndarray, burst_us: float, period_us: float, shape: tuple[int, int], periods: int = 3
+    parts: list[np.ndarray], burst_us: float, period_us: float, mask: np.ndarray,
+    periods: int = 2,
 ) -> np.ndarray:
-    """Boolean image of the pixels that brighten in step with the bursts of the last
+    """Boolean image of the pixels of ``mask`` that brighten in step with the bursts of the last
     ``periods`` blinks.
 
     A pixel counts when its ON events keep one phase (harmonic ratio >= 0.5) close to the burst's:
     within 0.3 period, because the display's scan-out spreads the rows' bursts over about 0.45
     period and the pixel response delays them further, while cells blinking in antiphase sit
     half a period away. Edges swept by camera motion fire at any phase."""
-    recent = events[int(np.searchsorted(events["t"], events["t"][-1] - periods * period_us)) :]
-    re, im, count = _pixel_harmonics(
-        recent["t"], recent["x"], recent["y"], recent["p"], *shape, period_us
-    )
+    since = int(parts[-1]["t"][-1] - periods * period_us)
+    x, y, w, h = cv2.boundingRect(mask)
+    acc = np.zeros((3, h, w))
+    for ev in parts:
+        if ev["t"][-1] >= since:
+            ev = ev[first_at(ev["t"], since) :]
+            _pixel_harmonics(ev["t"], ev["x"], ev["y"], ev["p"], x, y, period_us, acc)
+    re, im, count = acc
     amplitude = np.hypot(re, im)
     lag = np.angle((re + 1j * im) * np.exp(2j * np.pi * burst_us / period_us))
-    return (count >= 2) & (amplitude >= 0.5 * count) & (np.abs(lag) <= 0.3 * 2 * np.pi)
+    inside = (count >= 2) & (amplitude >= 0.5 * count) & (np.abs(lag) <= 0.3 * 2 * np.pi)
+    image = np.zeros(mask.shape, bool)
+    image[y : y + h, x : x + w] = inside & (mask[y : y + h, x : x + w] > 0)
+    return image
 
 
-def detect(events: np.ndarray, config: ReceiverConfig) -> Detection:
-    """Find the marker in ``events`` (a window of about ``detector.window_us``)."""
+def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Detection:
+    """Find the marker in ``events`` (a window of about ``detector.window_us``), given as one
+    array or as its time-ordered parts (the receiver's buffered chunks, never copied)."""
     params, cam = config.detector, config.camera
-    if len(events) < 100:
+    parts = [p for p in ([events] if isinstance(events, np.ndarray) else events) if len(p)]
+    if sum(len(p) for p in parts) < 100:
         raise MarkerNotFound("temporal: almost no events in the detection window")
-    heat = blink_heatmap(events, cam.width, cam.height, config.blink_hz, params.sigma_frac)
+    heat, triplets = blink_heatmap(
+        parts, cam.width, cam.height, config.blink_hz, params.sigma_frac
+    )
     hull = largest_region(heat, params.heat_threshold)
     mask = np.zeros((cam.height, cam.width), np.uint8)
     cv2.fillConvexPoly(mask, hull.astype(np.int32), 1)
+    # A short window cannot resolve the blink frequency by its DFT, but every triplet measures
+    # one period: in the region they must match the told blink, not just come closest to it.
+    inside = mask > 0
+    match = float(heat[inside].sum() / max(1, triplets[inside].sum()))
+    if match < params.min_period_match:
+        raise MarkerNotFound(
+            f"temporal: the blinking region's period does not match {config.blink_hz:g} Hz "
+            f"(mean match {match:.2f}); check --refresh-hz and --profile"
+        )
     band = locator_band(mask, config.geometry.locator_side)
-    rising = _rising_times(events["t"], events["x"], events["y"], events["p"], band)
-    t_start = int(events["t"][0])
-    window = int(events["t"][-1]) - t_start
+    rising = np.concatenate([_rising_times(p["t"], p["x"], p["y"], p["p"], band) for p in parts])
+    t_start, t_end = int(parts[0]["t"][0]), int(parts[-1]["t"][-1])
+    window = t_end - t_start
     burst, ratio = blink_phase(rising, t_start, window, config.blink_hz)
     if not ratio >= params.min_harmonic_ratio:
         raise MarkerNotFound(
@@ -256,7 +242,7 @@ def detect(events: np.ndarray, config: ReceiverConfig) -> Detection:
             f"Hz (harmonic ratio {ratio:.2f}); check --refresh-hz and --profile"
         )
     period = 1e6 / config.blink_hz
-    img = burst_image(events, burst, period, mask.shape) & (mask > 0)
+    img = burst_image(parts, burst, period, mask)
     points = np.argwhere(img)[:, ::-1]
     if len(points) < 16:
         raise MarkerNotFound("spatial: too few positive events at the blink phase")
@@ -268,5 +254,5 @@ def detect(events: np.ndarray, config: ReceiverConfig) -> Detection:
             f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
         )
     # The burst time refers to the latest whole period inside the window.
-    last = burst + np.floor((events["t"][-1] - burst) / period) * period
+    last = burst + np.floor((t_end - burst) / period) * period
     return Detection(corners, float(last), config.blink_hz, ratio, score)

@@ -4,6 +4,11 @@
 completed messages and state changes, in time order. The live daemon and the offline ``decode``
 command share it. The stream decoder survives tracking losses, so symbols gathered before a loss
 still count towards the message.
+
+Only one stage touches every event while the marker is tracked: the compiled triage
+(``triage.EventTriage``), which keeps each pixel's latest burst times for the decoder and hands
+the tracker the events near its edges. Detection reads the buffered raw chunks of its window;
+nothing copies or undistorts the whole stream.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from occ.stream import ReceivedMessage, StreamDecoder
-from receiver.pipeline.buffer import EventBuffer, to_columns
+from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.decoder import CellReader, FrameRead
 from receiver.pipeline.detector import MarkerNotFound, detect
@@ -90,7 +95,10 @@ class Receiver:
         self._filter = EventFilter(config.filters, cam.width, cam.height)
         keep = config.detector.window_us + 4 * int(config.frame_us)
         self._buffer = EventBuffer(keep)
-        self._triage: EventTriage | None = None
+        # Allocated once (with the camera's undistortion table), reset at every lock.
+        self._triage = EventTriage(
+            cam.undistort_table, config.refresh_us / 2, config.data_every == 1
+        )
         self._next_attempt_us: int | None = None
         self._tracker: EdgeTracker | None = None
         self._reader: CellReader | None = None
@@ -142,27 +150,29 @@ class Receiver:
             self._next_attempt_us = span[0] + window
         if now < self._next_attempt_us:
             return []
-        self._next_attempt_us = now + window
+        q = self.config.detector
+        cpu0 = time.process_time()
         with self._cpu("detect"):
-            events = self._buffer.between(now - window, now + 1)
             try:
-                found = detect(events, self.config)
+                found = detect(self._buffer.parts_between(now - window, now + 1), self.config)
                 geo = self.config.geometry
                 world = geo.locator_corners(self.config.marker_size_m)
                 T = pnp(found.corners_px, world, self.config.camera)
             except (MarkerNotFound, ValueError) as exc:
                 self.stats.detection_failures[str(exc)] += 1
                 log.debug("detection at %d us: %s", now, exc)
+                # Space the attempts so that failing ones take at most a share of a core.
+                spent_us = (time.process_time() - cpu0) * 1e6 / q.max_cpu_share
+                self._next_attempt_us = now + max(q.retry_us, int(spent_us))
                 return []
         self._tracker = EdgeTracker(self.config, T, now)
-        with self._cpu("track"):  # under motion the detected corners lag: snap to the ring
+        with self._cpu("lock"):  # under motion the detected corners lag: snap to the ring
             recent = self._buffer.between(now - self.config.tracker.capture_us, now + 1)
             recent = to_columns(recent, self.config.camera.undistort_table)
             if self._tracker.capture(recent["xu"], recent["yu"], now):
                 T = self._tracker.T_cam_world
         self._reader = CellReader(self.config, found.burst_us)
-        gap_us = self.config.refresh_us / 2
-        self._triage = EventTriage(self.config.camera.undistort_table, gap_us)
+        self._triage.reset(now)
         # Frames inside the detection window are still buffered: read them too.
         self._next_frame = -int(window // self.config.frame_us) + 1
         self._missed = 0
@@ -171,8 +181,10 @@ class Receiver:
         self.stats.lock_times_us.append(now)
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
         out.append(self._pose_output(now, T))
-        first = self._reader.window(self._next_frame)[0] - int(gap_us)
-        return out + self._follow(self._buffer.between(first, now + 1), track=False)
+        first = self._reader.window(self._next_frame)[0] - self._triage.gap_us
+        for part in self._buffer.parts_between(first, now + 1):
+            out += self._follow(part, track=False)
+        return out
 
     def _follow(self, events: np.ndarray, track: bool = True) -> list[Output]:
         """Triage ``events`` in short segments, cut where a frame's time span ends, so that each
@@ -184,7 +196,7 @@ class Receiver:
             if first >= end:  # the frame's bursts are complete
                 out += self._decode(end)
                 continue
-            cut = max(1, int(np.searchsorted(events["t"], min(end, first + _SEGMENT_US))))
+            cut = max(1, first_at(events["t"], min(end, first + _SEGMENT_US)))
             with self._cpu("triage"):
                 if track:
                     self._select_near_edges()
@@ -195,18 +207,13 @@ class Receiver:
         return out
 
     def _select_near_edges(self) -> None:
-        """Show the tracker only the events near its edges: within its gate, its fit band (one
-        ring width) and the motion of one segment."""
+        """Show the tracker only the events near its edges: twice its gate (so that a pose
+        slipping off the edges still shows) plus the motion of one segment."""
         tracker = self._tracker
         edges = project_ideal(tracker.T_cam_world, self.config.camera.K, tracker.edges_world)
-        if not np.all(np.isfinite(edges)):
-            return
-        geo = self.config.geometry
-        ring_m = geo.ring * geo.cell_size_m(self.config.marker_size_m)
-        length_m = np.linalg.norm(tracker.edges_world[:, 1] - tracker.edges_world[:, 0], axis=1)
-        ring_px = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1) * ring_m / length_m
-        reach = self.config.tracker.gate_px + float(ring_px.max()) + 4.0
-        self._triage.track_near(edges[:, 0], edges[:, 1], reach)
+        if np.all(np.isfinite(edges)):
+            reach = 2 * self.config.tracker.gate_px + 4.0
+            self._triage.track_near(edges[:, 0], edges[:, 1], reach)
 
     def _lose(self, now: int, reason: str) -> list[Output]:
         log.info("tracking lost at %d us: %s", now, reason)
@@ -264,7 +271,7 @@ class Receiver:
             with self._cpu("decode"):
                 t0, t1 = reader.window(m)
                 box = reader.box(self.pose_at((t0 + t1) / 2))
-                bursts = self._triage.bursts(t0, t1, box, reader.both_polarities)
+                bursts = self._triage.bursts(t0, t1, box)
                 read = reader.read(m, bursts, self.pose_at)
             self.stats.frames_read += 1
             seen = read.locator_score >= q.min_locator_score
