@@ -73,13 +73,33 @@ class Plan:
 
 _ALL_RATES = tuple((p, hz) for p in ("robust", "fast") for hz in (60.0, 120.0, 144.0, 240.0))
 PLANS = {
-    "full": Plan(None, (("paper", 60.0), *_ALL_RATES), (16, 32, 48, 64, 80, 96),
-                 (10.0, 250.0, 1000.0), 10, 15.0, 5, 100.0, (0.5, 1.0, 2.0, 3.0, 4.0, 6.0),
-                 9.0, 10.0),
-    "quick": Plan((480, 270), (("paper", 60.0), ("fast", 60.0)), (16, 32), (250.0,), 1, 3.0,
-                  2, 3.0, (1.0, 4.0), 0.5, 2.0),
-    "tiny": Plan((320, 180), (("paper", 60.0),), (16,), (250.0,), 1, 0.3, 1, 0.3, (2.0,), 0.1,
-                 0.3),
+    "full": Plan(
+        None,
+        (("paper", 60.0), *_ALL_RATES),
+        (16, 32, 48, 64, 80, 96),
+        (10.0, 250.0, 1000.0),
+        10,
+        15.0,
+        5,
+        100.0,
+        (0.5, 1.0, 2.0, 3.0, 4.0, 6.0),
+        9.0,
+        10.0,
+    ),
+    "quick": Plan(
+        (480, 270),
+        (("paper", 60.0), ("fast", 60.0)),
+        (16, 32),
+        (250.0,),
+        1,
+        3.0,
+        2,
+        3.0,
+        (1.0, 4.0),
+        0.5,
+        2.0,
+    ),
+    "tiny": Plan((320, 180), (("paper", 60.0),), (16,), (250.0,), 1, 0.3, 1, 0.3, (2.0,), 0.1, 0.3),
 }
 
 
@@ -102,71 +122,117 @@ def _save(out: Path, name: str, records: list[dict]) -> None:
 
 
 def run_streaming(plan: Plan, out: Path) -> tuple[str, str]:
-    points = [streaming.run_point(profile, hz, n, lux, seed, plan.streaming_s, plan.sensor)
-              for profile, hz in plan.streaming_grid for n in plan.cells for lux in plan.lux
-              for seed in range(plan.messages)]
+    points = [
+        streaming.run_point(profile, hz, n, lux, seed, plan.streaming_s, plan.sensor)
+        for profile, hz in plan.streaming_grid
+        for n in plan.cells
+        for lux in plan.lux
+        for seed in range(plan.messages)
+    ]
     _save(out, "streaming", [p.to_dict() for p in points])
     plots.streaming(points, out / "streaming.png")
-    rows = ["| profile | refresh Hz | N | lux | seed | BER before FEC | goodput kbit/s | "
-            "limit kbit/s | locked |", "|---|---|---|---|---|---|---|---|---|"]
-    rows += [f"| {p.profile} | {p.refresh_hz:g} | {p.cells} | {p.lux:g} | {p.seed} | "
-             f"{_pct(p.ber)} | {p.goodput_bps / 1e3:.2f} | {p.raw_bps / 1e3:.2f} | "
-             f"{'yes' if p.locked else 'no'} |" for p in points]
+    rows = [
+        "| profile | refresh Hz | N | lux | seed | BER before FEC | goodput kbit/s | "
+        "limit kbit/s | locked |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    rows += [
+        f"| {p.profile} | {p.refresh_hz:g} | {p.cells} | {p.lux:g} | {p.seed} | "
+        f"{_pct(p.ber)} | {p.goodput_bps / 1e3:.2f} | {p.raw_bps / 1e3:.2f} | "
+        f"{'yes' if p.locked else 'no'} |"
+        for p in points
+    ]
     best = max(points, key=lambda p: p.goodput_bps)
     bers = [p.ber for p in points if p.ber is not None]
-    headline = (f"Best goodput {best.goodput_bps / 1e3:.2f} kbit/s ({best.profile}, "
-                f"{best.refresh_hz:g} Hz, N = {best.cells}; physical limit "
-                f"{best.raw_bps / 1e3:.2f} kbit/s; paper: 114 kbit/s at N = 80). Median BER "
-                f"before FEC {_pct(float(np.median(bers)) if bers else None)} over "
-                f"{len(bers)} of {len(points)} runs that read frames.")
+    headline = (
+        f"Best goodput {best.goodput_bps / 1e3:.2f} kbit/s ({best.profile}, "
+        f"{best.refresh_hz:g} Hz, N = {best.cells}; physical limit "
+        f"{best.raw_bps / 1e3:.2f} kbit/s; paper: 114 kbit/s at N = 80). Median BER "
+        f"before FEC {_pct(float(np.median(bers)) if bers else None)} over "
+        f"{len(bers)} of {len(points)} runs that read frames."
+    )
     return "\n".join(rows) + "\n\n![streaming](streaming.png)\n", headline
 
 
 def run_localization(plan: Plan, out: Path) -> tuple[str, str]:
-    rows = ["| seq. | seed | flow px/ms | time s | R_rpe deg | t_rpe cm | t_ate cm | BER | "
-            "decodable | paper: time s, R_rpe, t_rpe, t_ate, BER |",
-            "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| seq. | seed | flow px/ms | time s | R_rpe deg | t_rpe cm | t_ate cm | BER | "
+        "decodable | paper: time s, R_rpe, t_rpe, t_ate, BER |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     results, figure = [], ""
     for i, (seed, flow) in enumerate(localization.SEQUENCES[: plan.sequences]):
         res, run = localization.run_sequence(seed, flow, plan.sequence_s, plan.sensor)
         results.append(res)
         paper = localization.PAPER_TABLE[i]
-        rows.append(f"| {i + 1} | {seed} | {flow:g} | {res.time_s:g} | {_num(res.rpe_rot_deg)} "
-                    f"| {_num(res.rpe_trans_cm)} | {_num(res.ate_cm)} | {_pct(res.ber)} | "
-                    f"{'yes' if res.decodable else 'no'} | {paper[0]}, {paper[1]}, "
-                    f"{paper[2]}, {paper[3]}, {_pct(paper[4])} |")
+        rows.append(
+            f"| {i + 1} | {seed} | {flow:g} | {res.time_s:g} | {_num(res.rpe_rot_deg)} "
+            f"| {_num(res.rpe_trans_cm)} | {_num(res.ate_cm)} | {_pct(res.ber)} | "
+            f"{'yes' if res.decodable else 'no'} | {paper[0]}, {paper[1]}, "
+            f"{paper[2]}, {paper[3]}, {_pct(paper[4])} |"
+        )
         if not figure and len(run.pose_t_us) >= localization.MIN_POSES:
-            plots.trajectory(run.pose_t_us, localization.aligned_positions(run),
-                             run.truth[:, :3, 3],
-                             f"seq. {i + 1}: estimated vs ground truth", out / "trajectory.png")
+            plots.trajectory(
+                run.pose_t_us,
+                localization.aligned_positions(run),
+                run.truth[:, :3, 3],
+                f"seq. {i + 1}: estimated vs ground truth",
+                out / "trajectory.png",
+            )
             figure = "\n\n![trajectory](trajectory.png)"
     _save(out, "localization", [r.to_dict() for r in results])
     ates = [r.ate_cm for r in results if not math.isnan(r.ate_cm)]
-    headline = (f"ATE {_num(min(ates)) if ates else 'n/a'}-{_num(max(ates)) if ates else 'n/a'}"
-                f" cm over {len(ates)} of {len(results)} sequences with poses (paper: "
-                f"1.40-1.96 cm); {sum(r.decodable for r in results)} of {len(results)} "
-                "decodable (paper: all).")
+    headline = (
+        f"ATE {_num(min(ates)) if ates else 'n/a'}-{_num(max(ates)) if ates else 'n/a'}"
+        f" cm over {len(ates)} of {len(results)} sequences with poses (paper: "
+        f"1.40-1.96 cm); {sum(r.decodable for r in results)} of {len(results)} "
+        "decodable (paper: all)."
+    )
     return "\n".join(rows) + figure + "\n", headline
 
 
 def run_baselines(plan: Plan, out: Path) -> tuple[str, str]:
-    runs = [(baselines.run_frame_baseline(family, blank, flow, seed, plan.baseline_s,
-                                          plan.sensor), seed, flow)
-            for family in baselines.code_families() for blank in (False, True)
-            for seed, flow in enumerate(plan.flows)]
-    runs += [(baselines.run_event(flow, seed, plan.event_baseline_s, plan.sensor), seed, flow)
-             for seed, flow in enumerate(plan.flows)]
+    runs = [
+        (
+            baselines.run_frame_baseline(family, blank, flow, seed, plan.baseline_s, plan.sensor),
+            seed,
+            flow,
+        )
+        for family in baselines.code_families()
+        for blank in (False, True)
+        for seed, flow in enumerate(plan.flows)
+    ]
+    runs += [
+        (baselines.run_event(flow, seed, plan.event_baseline_s, plan.sensor), seed, flow)
+        for seed, flow in enumerate(plan.flows)
+    ]
     outcomes = [o for o, _, _ in runs]
     plots.comparison(outcomes, out / "comparison.png")
-    _save(out, "comparison", [
-        {"system": o.system, "seed": seed, "flow_target_px_per_ms": flow,
-         "flow_px_per_ms": o.flow.tolist(), "received": o.received.tolist(),
-         "throughput_bps": o.throughput_bps} for o, seed, flow in runs])
-    rows = ["| system | seed | flow target px/ms | units sent | received | throughput bit/s |",
-            "|---|---|---|---|---|---|"]
-    rows += [f"| {o.system} | {seed} | {flow:g} | {len(o.received)} | "
-             f"{_pct(o.received.mean() if len(o.received) else None)} | "
-             f"{o.throughput_bps:.0f} |" for o, seed, flow in runs]
+    _save(
+        out,
+        "comparison",
+        [
+            {
+                "system": o.system,
+                "seed": seed,
+                "flow_target_px_per_ms": flow,
+                "flow_px_per_ms": o.flow.tolist(),
+                "received": o.received.tolist(),
+                "throughput_bps": o.throughput_bps,
+            }
+            for o, seed, flow in runs
+        ],
+    )
+    rows = [
+        "| system | seed | flow target px/ms | units sent | received | throughput bit/s |",
+        "|---|---|---|---|---|---|",
+    ]
+    rows += [
+        f"| {o.system} | {seed} | {flow:g} | {len(o.received)} | "
+        f"{_pct(o.received.mean() if len(o.received) else None)} | "
+        f"{o.throughput_bps:.0f} |"
+        for o, seed, flow in runs
+    ]
     by_system: dict[str, list[baselines.Outcome]] = {}
     for o in outcomes:
         by_system.setdefault(o.system, []).append(o)
@@ -174,8 +240,9 @@ def run_baselines(plan: Plan, out: Path) -> tuple[str, str]:
     for name, group in by_system.items():
         got = np.concatenate([o.received for o in group])
         share = _pct(float(got.mean())) if len(got) else "n/a"
-        parts.append(f"{name}: {share} received, "
-                     f"{np.mean([o.throughput_bps for o in group]):.0f} bit/s")
+        parts.append(
+            f"{name}: {share} received, {np.mean([o.throughput_bps for o in group]):.0f} bit/s"
+        )
     headline = "; ".join(parts) + "."
     return "\n".join(rows) + "\n\n![comparison](comparison.png)\n", headline
 
@@ -200,8 +267,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="same as --scale quick")
     parser.add_argument("--scale", choices=sorted(PLANS), default="full")
-    parser.add_argument("--only", nargs="+", choices=[e[0] for e in EXPERIMENTS],
-                        help="run only these experiments (the other sections are kept)")
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=[e[0] for e in EXPERIMENTS],
+        help="run only these experiments (the other sections are kept)",
+    )
     parser.add_argument("--out", type=Path, default=DOCS, help="folder for plots and reports")
     args = parser.parse_args(argv)
     scale = "quick" if args.quick else args.scale
@@ -213,8 +284,10 @@ def main(argv: list[str] | None = None) -> None:
             continue
         print(f"[bench] {title} ...", flush=True)
         (body, headline), wall = _timed(lambda run=run: run(plan, out))
-        body = (f"**In short:** {headline}\n\nScale `{scale}`: {plan}. Wall time {wall:.0f} s."
-                f"\n\n{body}")
+        body = (
+            f"**In short:** {headline}\n\nScale `{scale}`: {plan}. Wall time {wall:.0f} s."
+            f"\n\n{body}"
+        )
         write_section(f"paper_{name}", title, command, body, path=out / "BENCHMARKS.md")
         write_results(out / "RESULTS.md", f"paper_{name}", title, command, body)
 

@@ -22,29 +22,40 @@ DATA_FRAMES = 4
 
 def main() -> None:
     cam = CameraModel.paper()
-    rows = ["| N | paper px/cell | marker size (m) | px/cell at the marker centre | "
-            "events per data frame |", "|---|---|---|---|---|"]
+    rows = [
+        "| N | paper px/cell | marker size (m) | px/cell at the marker centre | "
+        "events per data frame |",
+        "|---|---|---|---|---|",
+    ]
     sizes = []
     for cells, px in PAPER_CELL_PX.items():
         enc = StreamEncoder(bytes(8192), profile="paper", cells=cells)
         size = marker_size_for_cell_px(px, enc.geometry, DISTANCE_M, cam.K[0, 0])
-        scene = Scene(encoder=enc, marker_size_m=size, camera=cam,
-                      motion=StaticMotion(distance_m=DISTANCE_M),
-                      sensor=SensorModel.preset("gen4-indoor", lux=250.0))
+        scene = Scene(
+            encoder=enc,
+            marker_size_m=size,
+            camera=cam,
+            motion=StaticMotion(distance_m=DISTANCE_M),
+            sensor=SensorModel.preset("gen4-indoor", lux=250.0),
+        )
         duration = DATA_FRAMES * 2 / scene.display.refresh_hz
         count = sum(len(c) for c in simulate(scene, duration))
         sizes.append(size)
-        rows.append(f"| {cells} | {px} | {size:.3f} | {scene.cell_px():.1f} | "
-                    f"{count / DATA_FRAMES:,.0f} |")
+        rows.append(
+            f"| {cells} | {px} | {size:.3f} | {scene.cell_px():.1f} | {count / DATA_FRAMES:,.0f} |"
+        )
         print(rows[-1], flush=True)
     write_section(
-        "calibration", "Simulator calibration against the paper's static set-up",
+        "calibration",
+        "Simulator calibration against the paper's static set-up",
         "NUMBA_NUM_THREADS=1 .venv/bin/python -m bench.calibration",
         f"Marker at {DISTANCE_M} m, 60 Hz LCD, 250 lux, gen4-indoor sensor, 1280x720 paper lens, "
         f"{DATA_FRAMES} data frames (paper profile: data + blank) per N. The marker size (the "
         "white ring's outer side) is the one that gives the paper's pixels per cell at the "
         f"marker centre: {min(sizes):.2f}-{max(sizes):.2f} m across N, against the 0.272 m "
-        "default.\n\n" + "\n".join(rows))
+        "default.\n\n" + "\n".join(rows),
+    )
+
 
 if __name__ == "__main__":
     main()

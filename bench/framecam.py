@@ -58,8 +58,9 @@ class Slideshow:
         if len(shapes) != 1 or len(first) != 2 or first[0] != first[1]:
             raise ValueError(f"codes must be square module matrices of one size, got {shapes}")
         if self.size_m <= 0 or self.lux < 0:
-            raise ValueError(f"size_m must be positive and lux >= 0, got {self.size_m} m, "
-                             f"{self.lux} lux")
+            raise ValueError(
+                f"size_m must be positive and lux >= 0, got {self.size_m} m, {self.lux} lux"
+            )
 
     @property
     def modules(self) -> int:
@@ -105,8 +106,9 @@ class Slideshow:
         for row, (kr, vr) in enumerate(zip(k, v, strict=True)):
             # Two refreshes back is settled to within exp(-period / tau): negligible for LCDs.
             start = settle(self._target(kr - 2)[row], self._target(kr - 1)[row], d.period_us, d)
-            out[row] = settle(start, self._target(kr)[row], t_us - kr * d.period_us
-                              - vr * d.scan_us, d)
+            out[row] = settle(
+                start, self._target(kr)[row], t_us - kr * d.period_us - vr * d.scan_us, d
+            )
         return out + d.ambient_nits(self.lux)
 
     @property
@@ -117,8 +119,7 @@ class Slideshow:
         """float32 luminance image of the whole screen at ``t_us`` (code plus black margin)."""
         px, pad = TEXTURE_PX_PER_MODULE, self._margin_px
         code = np.kron(self.module_luminance(t_us), np.ones((px, px))).astype(np.float32)
-        return cv2.copyMakeBorder(code, pad, pad, pad, pad, cv2.BORDER_CONSTANT,
-                                  value=self._black)
+        return cv2.copyMakeBorder(code, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=self._black)
 
     def texture_to_plane(self) -> np.ndarray:
         """3x3 map from texture pixel coordinates to marker-plane metres (homogeneous)."""
@@ -149,8 +150,10 @@ class FrameCamera:
         if not 0 < self.fps <= 1000:
             raise ValueError(f"fps must be in (0, 1000], got {self.fps}")
         if not 0 < self.exposure_ms * 1e-3 * self.fps <= 1:
-            raise ValueError(f"exposure {self.exposure_ms} ms does not fit a {self.fps} Hz "
-                             "frame period: lower one of them")
+            raise ValueError(
+                f"exposure {self.exposure_ms} ms does not fit a {self.fps} Hz "
+                "frame period: lower one of them"
+            )
         if self.full_well_e <= 0 or self.read_noise_e < 0 or not 0 < self.white_level <= 1:
             raise ValueError("need full_well_e > 0, read_noise_e >= 0, 0 < white_level <= 1")
 
@@ -168,13 +171,15 @@ class FrameCamera:
 
     def _substeps(self, screen: Slideshow, trajectory: Trajectory, t0: float, t1: float) -> int:
         ends = trajectory.pose_at(np.array([t0, t1]))
-        moved = np.abs(np.diff([project_points(self.camera, T, screen.corners()) for T in ends],
-                               axis=0)).max()
+        moved = np.abs(
+            np.diff([project_points(self.camera, T, screen.corners()) for T in ends], axis=0)
+        ).max()
         # At least a few renders so screen switches inside the exposure are averaged too.
         return int(np.clip(math.ceil(moved / self.max_step_px), 4, 64))
 
-    def capture(self, screen: Slideshow, trajectory: Trajectory, t_start_us: float,
-                rng: np.random.Generator) -> np.ndarray:
+    def capture(
+        self, screen: Slideshow, trajectory: Trajectory, t_start_us: float, rng: np.random.Generator
+    ) -> np.ndarray:
         """uint8 (height, width) image exposed from ``t_start_us`` for ``exposure_ms``."""
         cam = self.camera
         t_end = t_start_us + self.exposure_ms * 1e3
@@ -183,10 +188,14 @@ class FrameCamera:
         poses = trajectory.pose_at(times)
         ideal = np.zeros((cam.height, cam.width), np.float32)
         for t, T in zip(times, poses, strict=True):
-            ideal += cv2.warpPerspective(screen.texture(t), self._homography(screen, T),
-                                         (cam.width, cam.height), flags=cv2.INTER_LINEAR,
-                                         borderMode=cv2.BORDER_CONSTANT,
-                                         borderValue=screen.wall_nits)
+            ideal += cv2.warpPerspective(
+                screen.texture(t),
+                self._homography(screen, T),
+                (cam.width, cam.height),
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=screen.wall_nits,
+            )
         ideal /= n
         if self.blur_px > 0:
             ideal = cv2.GaussianBlur(ideal, (0, 0), self.blur_px)
@@ -194,11 +203,13 @@ class FrameCamera:
             ideal = cv2.remap(ideal, *self._distort_map, cv2.INTER_LINEAR)
         electrons = ideal / screen.white_nits * self.white_level * self.full_well_e
         electrons = rng.poisson(np.maximum(electrons, 0)) + rng.normal(
-            0, self.read_noise_e, electrons.shape)
+            0, self.read_noise_e, electrons.shape
+        )
         return np.clip(electrons / self.full_well_e * 255, 0, 255).astype(np.uint8)
 
-    def frames(self, screen: Slideshow, trajectory: Trajectory, duration_s: float,
-               seed: int = 0) -> Iterator[tuple[float, np.ndarray]]:
+    def frames(
+        self, screen: Slideshow, trajectory: Trajectory, duration_s: float, seed: int = 0
+    ) -> Iterator[tuple[float, np.ndarray]]:
         """(exposure start in us, image) of every frame in ``[0, duration_s)``; the camera's
         clock is not synchronised with the screen's (it starts a third of a frame in)."""
         rng = np.random.default_rng(seed)

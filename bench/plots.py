@@ -31,23 +31,29 @@ def streaming(points: list[StreamingPoint], path: Path) -> None:
     for g, (label, by_n) in enumerate(sorted(groups.items())):
         pos = [i + (g - (len(groups) - 1) / 2) * width for i, n in enumerate(cells) if n in by_n]
         colour = colours[g % len(colours)]
-        style = {"widths": width * 0.9, "patch_artist": True,
-                 "boxprops": {"facecolor": colour, "alpha": 0.6},
-                 "medianprops": {"color": "black"}}
+        style = {
+            "widths": width * 0.9,
+            "patch_artist": True,
+            "boxprops": {"facecolor": colour, "alpha": 0.6},
+            "medianprops": {"color": "black"},
+        }
         present = [n for n in cells if n in by_n]
         # Runs that never read a frame have no BER: they show in the goodput panel as zeros.
         ber = {n: [100 * p.ber for p in by_n[n] if p.ber is not None] for n in present}
         read = [n for n in present if ber[n]]
         if read:
-            ax_ber.boxplot([ber[n] for n in read],
-                           positions=[pos[present.index(n)] for n in read], **style)
-        ax_rate.boxplot([[p.goodput_bps / 1e3 for p in by_n[n]] for n in present],
-                        positions=pos, **style)
+            ax_ber.boxplot(
+                [ber[n] for n in read], positions=[pos[present.index(n)] for n in read], **style
+            )
+        ax_rate.boxplot(
+            [[p.goodput_bps / 1e3 for p in by_n[n]] for n in present], positions=pos, **style
+        )
         ax_rate.plot([], [], "s", color=colour, alpha=0.6, label=label)
         limit = [by_n[n][0].raw_bps / 1e3 for n in present]
         ax_rate.plot(pos, limit, "_", color=colour, markersize=14, markeredgewidth=2)
-    ax_rate.axhline(PAPER_PEAK_BPS / 1e3, color="grey", ls="--", lw=1,
-                    label="paper peak, 114 kbit/s")
+    ax_rate.axhline(
+        PAPER_PEAK_BPS / 1e3, color="grey", ls="--", lw=1, label="paper peak, 114 kbit/s"
+    )
     ax_rate.plot([], [], "_", color="black", markersize=14, label="physical limit N² x frame rate")
     for ax, title in ((ax_ber, "BER before FEC [%]"), (ax_rate, "goodput after FEC [kbit/s]")):
         ax.set_xticks(range(len(cells)), [f"{n}x{n}" for n in cells])
@@ -61,8 +67,9 @@ def streaming(points: list[StreamingPoint], path: Path) -> None:
     plt.close(fig)
 
 
-def trajectory(t_us: np.ndarray, estimate: np.ndarray, truth: np.ndarray, title: str,
-               path: Path) -> None:
+def trajectory(
+    t_us: np.ndarray, estimate: np.ndarray, truth: np.ndarray, title: str, path: Path
+) -> None:
     """Estimated (aligned, (n, 3)) vs ground-truth (n, 3) camera positions over time, like the
     paper's figure."""
     fig, axes = plt.subplots(3, 1, figsize=(8, 6), sharex=True)
@@ -70,12 +77,20 @@ def trajectory(t_us: np.ndarray, estimate: np.ndarray, truth: np.ndarray, title:
     # Break the lines where tracking was lost rather than join the poses on either side.
     gap = np.flatnonzero(np.diff(t) > TRACKING_GAP_S) + 1
     t = np.insert(t, gap, np.nan)
-    estimate, truth = np.insert(estimate, gap, np.nan, axis=0), np.insert(truth, gap, np.nan,
-                                                                         axis=0)
+    estimate, truth = (
+        np.insert(estimate, gap, np.nan, axis=0),
+        np.insert(truth, gap, np.nan, axis=0),
+    )
     for i, (ax, axis) in enumerate(zip(axes, "xyz", strict=True)):
         ax.plot(t, truth[:, i] * 100, color="black", lw=1.2, label="ground truth")
-        ax.plot(t, estimate[:, i] * 100, color="tab:red", lw=0.8, ls="--",
-                label="estimate (Umeyama-aligned)")
+        ax.plot(
+            t,
+            estimate[:, i] * 100,
+            color="tab:red",
+            lw=0.8,
+            ls="--",
+            label="estimate (Umeyama-aligned)",
+        )
         ax.set_ylabel(f"{axis} [cm]")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8, loc="upper right")
@@ -100,10 +115,17 @@ def comparison(outcomes: list[Outcome], path: Path) -> None:
         flow = np.concatenate([o.flow for o in by_system[name]])
         got = np.concatenate([o.received for o in by_system[name]])
         bins = np.digitize(flow, edges) - 1
-        share = [got[bins == b].mean() * 100 if np.any(bins == b) else np.nan
-                 for b in range(len(centres))]
-        ax_ok.plot(centres, share, "o--" if name.endswith("blank") else "o-", label=name,
-                   lw=2.5 if name.startswith("ours") else 1.2)
+        share = [
+            got[bins == b].mean() * 100 if np.any(bins == b) else np.nan
+            for b in range(len(centres))
+        ]
+        ax_ok.plot(
+            centres,
+            share,
+            "o--" if name.endswith("blank") else "o-",
+            label=name,
+            lw=2.5 if name.startswith("ours") else 1.2,
+        )
         rates.append(np.mean([o.throughput_bps for o in by_system[name]]))
     ax_ok.set_xlabel("marker optical flow [px/ms], bin centres")
     ax_ok.set_ylabel("codes / data frames received [%]")
@@ -112,8 +134,14 @@ def comparison(outcomes: list[Outcome], path: Path) -> None:
     ax_ok.legend(fontsize=7)
     ax_rate.barh(range(len(names)), rates, color="tab:blue")
     for i, rate in enumerate(rates):
-        ax_rate.annotate(f"{rate:.0f}", (max(rate, 1.0), i), xytext=(3, 0),
-                         textcoords="offset points", va="center", fontsize=8)
+        ax_rate.annotate(
+            f"{rate:.0f}",
+            (max(rate, 1.0), i),
+            xytext=(3, 0),
+            textcoords="offset points",
+            va="center",
+            fontsize=8,
+        )
     ax_rate.set_yticks(range(len(names)), names, fontsize=8)
     ax_rate.set_xscale("log")
     ax_rate.set_xlim(left=1.0)

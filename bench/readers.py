@@ -31,8 +31,9 @@ def synthetic_events(n: int, seed: int = 0) -> np.ndarray:
     """Events at ~20 Mev/s with sensor-like bursts along rows."""
     rng = np.random.default_rng(seed)
     t = np.sort(rng.integers(0, n // 20, n))
-    return make_events(t, rng.integers(0, WIDTH, n), rng.integers(0, HEIGHT, n),
-                       rng.integers(0, 2, n))
+    return make_events(
+        t, rng.integers(0, WIDTH, n), rng.integers(0, HEIGHT, n), rng.integers(0, 2, n)
+    )
 
 
 def read_seconds(path: Path, fmt: str) -> float:
@@ -55,7 +56,9 @@ def main() -> None:
             print(f"{fmt:6s} {n / median / 1e6:7.1f} Mev/s")
     table = "\n".join(f"| {fmt} | {n:,} | {size:.2f} | {rate:.1f} |" for fmt, n, size, rate in rows)
     write_section(
-        "readers", "Event file readers", "python -m bench.readers",
+        "readers",
+        "Event file readers",
+        "python -m bench.readers",
         "Median of 3 full reads per format, one core (NUMBA_NUM_THREADS=1), files in the page "
         "cache. Target: EVT 3.0 >= 20 Mev/s.\n\n"
         "| format | events | bytes/event | read Mev/s |\n|---|---|---|---|\n" + table,

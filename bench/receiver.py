@@ -172,8 +172,10 @@ def cases(quick: bool) -> list[Case]:
         [Case("paper", n, 60.0, PAPER, 0.48, 0.4) for n in (16, 48, 80, 96)]
         + [Case("paper", 80, 60.0, PAPER, 0.48, 0.4, readout_mev_s=50.0)]
         + [Case("robust", 96, hz, PAPER, 0.48, 0.4) for hz in (60.0, 120.0, 240.0)]
-        + [Case("fast", n, hz, PAPER, 0.48, 0.4) for n, hz in ((96, 60.0), (80, 120.0),
-                                                             (80, 240.0))]
+        + [
+            Case("fast", n, hz, PAPER, 0.48, 0.4)
+            for n, hz in ((96, 60.0), (80, 120.0), (80, 240.0))
+        ]
         + [Case("robust", 16, 60.0, PAPER, 0.6, 0.3, hand_held=True)]
     )
 

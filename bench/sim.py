@@ -26,39 +26,60 @@ def _paper_marker(cells: int, cell_px: float) -> float:
 
 CASES = {
     "static, 80 cells, 1.25 m, 0.272 m marker, 1280x720": {
-        "cells": 80, "camera": PAPER, "motion": StaticMotion(distance_m=1.25)},
+        "cells": 80,
+        "camera": PAPER,
+        "motion": StaticMotion(distance_m=1.25),
+    },
     "static, 80 cells, 1.25 m, 8 px/cell (paper), 1280x720": {
-        "cells": 80, "camera": PAPER, "motion": StaticMotion(distance_m=1.25),
-        "marker_size_m": _paper_marker(80, 8.0)},
+        "cells": 80,
+        "camera": PAPER,
+        "motion": StaticMotion(distance_m=1.25),
+        "marker_size_m": _paper_marker(80, 8.0),
+    },
     "hand-held 0.5 px/ms, 16 cells, 1.2 m, 640x480": {
-        "cells": 16, "camera": VGA, "motion": HandHeldMotion(distance_m=1.2, flow_px_per_ms=0.5)},
+        "cells": 16,
+        "camera": VGA,
+        "motion": HandHeldMotion(distance_m=1.2, flow_px_per_ms=0.5),
+    },
     "hand-held 1 px/ms, 16 cells, 0.6 m, 1280x720": {
-        "cells": 16, "camera": PAPER, "motion": HandHeldMotion(distance_m=0.6,
-                                                                flow_px_per_ms=1.0)},
+        "cells": 16,
+        "camera": PAPER,
+        "motion": HandHeldMotion(distance_m=0.6, flow_px_per_ms=1.0),
+    },
 }
 
 
 def main() -> None:
-    rows = ["| scene | px/cell | sim s / wall s | sim s / CPU s | events/s (simulated) | "
-            "peak RSS MB |", "|---|---|---|---|---|---|"]
+    rows = [
+        "| scene | px/cell | sim s / wall s | sim s / CPU s | events/s (simulated) | peak RSS MB |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, case in CASES.items():
-        scene = Scene(encoder=StreamEncoder(bytes(4096), profile="paper", cells=case["cells"]),
-                      camera=case["camera"], motion=case["motion"],
-                      marker_size_m=case.get("marker_size_m", 0.272),
-                      sensor=SensorModel.preset("gen4-indoor"))
+        scene = Scene(
+            encoder=StreamEncoder(bytes(4096), profile="paper", cells=case["cells"]),
+            camera=case["camera"],
+            motion=case["motion"],
+            marker_size_m=case.get("marker_size_m", 0.272),
+            sensor=SensorModel.preset("gen4-indoor"),
+        )
         list(simulate(scene, 0.02))  # compile and warm caches
         start, cpu = time.perf_counter(), time.process_time()
         count = sum(len(c) for c in simulate(scene, DURATION_S))
         wall, cpu = time.perf_counter() - start, time.process_time() - cpu
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        rows.append(f"| {name} | {scene.cell_px():.1f} | {DURATION_S / wall:.3f} | "
-                    f"{DURATION_S / cpu:.3f} | {count / DURATION_S:,.0f} | {rss:.0f} |")
+        rows.append(
+            f"| {name} | {scene.cell_px():.1f} | {DURATION_S / wall:.3f} | "
+            f"{DURATION_S / cpu:.3f} | {count / DURATION_S:,.0f} | {rss:.0f} |"
+        )
         print(rows[-1], flush=True)
-    write_section("sim", "Virtual event camera speed (gen4-indoor sensor, one core)",
-                  "NUMBA_NUM_THREADS=1 .venv/bin/python -m bench.sim",
-                  f"{DURATION_S} s simulated per scene (set-up included), after a warm-up run; "
-                  "paper link profile at 60 Hz, 250 lux. The machine is shared, so CPU time is "
-                  "given next to wall time.\n\n" + "\n".join(rows))
+    write_section(
+        "sim",
+        "Virtual event camera speed (gen4-indoor sensor, one core)",
+        "NUMBA_NUM_THREADS=1 .venv/bin/python -m bench.sim",
+        f"{DURATION_S} s simulated per scene (set-up included), after a warm-up run; "
+        "paper link profile at 60 Hz, 250 lux. The machine is shared, so CPU time is "
+        "given next to wall time.\n\n" + "\n".join(rows),
+    )
 
 
 if __name__ == "__main__":

@@ -46,17 +46,28 @@ def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
     for chunk in rec:
         log.add(rx.push(chunk))
-    row = {"flow": flow_px_per_ms, "seed": seed, "ate_cm": np.nan, "rpe_cm": np.nan,
-           "rpe_deg": np.nan, "ber": log.ber, "decoded": [m.message.data for m in log.messages]
-           == [MESSAGE], "pose_hz": np.nan, "losses": rx.stats.losses,
-           "lock_ms": rx.stats.lock_times_us[0] / 1e3 if rx.stats.lock_times_us else None}
+    row = {
+        "flow": flow_px_per_ms,
+        "seed": seed,
+        "ate_cm": np.nan,
+        "rpe_cm": np.nan,
+        "rpe_deg": np.nan,
+        "ber": log.ber,
+        "decoded": [m.message.data for m in log.messages] == [MESSAGE],
+        "pose_hz": np.nan,
+        "losses": rx.stats.losses,
+        "lock_ms": rx.stats.lock_times_us[0] / 1e3 if rx.stats.lock_times_us else None,
+    }
     t = np.array(log.pose_t)
     if len(t) >= 3:
         err = pose_errors(t, np.array(log.poses), rec.pose_at(t), delta_us=10_000)
         tracked_s = (t[-1] - t[0]) / 1e6
-        row.update(ate_cm=100 * err.ate_rmse_m, rpe_cm=100 * err.rpe_trans_rmse_m,
-                   rpe_deg=err.rpe_rot_rmse_deg,
-                   pose_hz=rx.stats.pose_updates / tracked_s if tracked_s > 0 else np.nan)
+        row.update(
+            ate_cm=100 * err.ate_rmse_m,
+            rpe_cm=100 * err.rpe_trans_rmse_m,
+            rpe_deg=err.rpe_rot_rmse_deg,
+            pose_hz=rx.stats.pose_updates / tracked_s if tracked_s > 0 else np.nan,
+        )
     return row
 
 
@@ -70,23 +81,34 @@ def main() -> None:
         for seed in seeds:
             rows.append(run_one(flow, seed, duration))
             print(rows[-1], flush=True)
-    lines = ["| flow px/ms | seed | ATE cm | RPE cm / 10 ms | RPE deg | BER | decoded | "
-             "pose updates/s | losses | first lock ms |", "|---" * 10 + "|"]
+    lines = [
+        "| flow px/ms | seed | ATE cm | RPE cm / 10 ms | RPE deg | BER | decoded | "
+        "pose updates/s | losses | first lock ms |",
+        "|---" * 10 + "|",
+    ]
     for r in rows:
         ber = "-" if r["ber"] is None else f"{r['ber']:.4f}"
         lock = "never" if r["lock_ms"] is None else f"{r['lock_ms']:.0f}"
-        lines.append(f"| {r['flow']} | {r['seed']} | {r['ate_cm']:.2f} | {r['rpe_cm']:.2f} | "
-                     f"{r['rpe_deg']:.2f} | {ber} | {'yes' if r['decoded'] else 'no'} | "
-                     f"{r['pose_hz']:.0f} | {r['losses']} | "
-                     f"{lock} |")
-    body = (f"HandHeldMotion at 0.6 m, N = 16, robust profile, gen4-indoor sensor, 240x180 "
-            f"camera, {duration} s clips. ATE after a rigid Umeyama fit (scale fixed at 1 by "
-            "the marker size). Targets: ATE <= 1 cm, every message decoded, >= 1 kHz poses. "
-            "'never' under first lock: the detector did not lock during the clip (detection "
-            "under hand-held motion is a known gap; ATE etc. then have nothing to score).\n\n"
-            + "\n".join(lines))
-    write_section("tracking", "Hand-held tracking",
-                  "python -m bench.tracking" + (" --quick" if args.quick else ""), body)
+        lines.append(
+            f"| {r['flow']} | {r['seed']} | {r['ate_cm']:.2f} | {r['rpe_cm']:.2f} | "
+            f"{r['rpe_deg']:.2f} | {ber} | {'yes' if r['decoded'] else 'no'} | "
+            f"{r['pose_hz']:.0f} | {r['losses']} | "
+            f"{lock} |"
+        )
+    body = (
+        f"HandHeldMotion at 0.6 m, N = 16, robust profile, gen4-indoor sensor, 240x180 "
+        f"camera, {duration} s clips. ATE after a rigid Umeyama fit (scale fixed at 1 by "
+        "the marker size). Targets: ATE <= 1 cm, every message decoded, >= 1 kHz poses. "
+        "'never' under first lock: the detector did not lock during the clip (detection "
+        "under hand-held motion is a known gap; ATE etc. then have nothing to score).\n\n"
+        + "\n".join(lines)
+    )
+    write_section(
+        "tracking",
+        "Hand-held tracking",
+        "python -m bench.tracking" + (" --quick" if args.quick else ""),
+        body,
+    )
 
 
 if __name__ == "__main__":

@@ -78,19 +78,29 @@ def save_calibration(camera: CameraModel, path: str | Path, *, format: str | Non
             "image_height": camera.height,
             "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()},
             "distortion_model": "plumb_bob",
-            "distortion_coefficients": {"rows": 1, "cols": camera.dist.size,
-                                        "data": camera.dist.tolist()},
+            "distortion_coefficients": {
+                "rows": 1,
+                "cols": camera.dist.size,
+                "data": camera.dist.tolist(),
+            },
         }
     elif format == "eventocc":
-        doc = {"camera": {
-            "width": camera.width, "height": camera.height,
-            "fx": float(camera.K[0, 0]), "fy": float(camera.K[1, 1]),
-            "cx": float(camera.K[0, 2]), "cy": float(camera.K[1, 2]),
-            "distortion_model": "plumb_bob", "distortion_coeffs": camera.dist.tolist(),
-        }}
+        doc = {
+            "camera": {
+                "width": camera.width,
+                "height": camera.height,
+                "fx": float(camera.K[0, 0]),
+                "fy": float(camera.K[1, 1]),
+                "cx": float(camera.K[0, 2]),
+                "cy": float(camera.K[1, 2]),
+                "distortion_model": "plumb_bob",
+                "distortion_coeffs": camera.dist.tolist(),
+            }
+        }
     else:
-        raise ValueError(f"unknown calibration format {format!r}; "
-                         f"choose one of {CALIBRATION_FORMATS}")
+        raise ValueError(
+            f"unknown calibration format {format!r}; choose one of {CALIBRATION_FORMATS}"
+        )
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
@@ -106,22 +116,30 @@ def _numbers(path: Path, value: Any, name: str, sizes: tuple[int, ...]) -> np.nd
     except (TypeError, ValueError):
         raise CalibrationError(path, f"field '{name}' must be a list of numbers") from None
     if array.size not in sizes or not np.all(np.isfinite(array)):
-        raise CalibrationError(path, f"field '{name}' must hold {' or '.join(map(str, sizes))} "
-                               f"finite numbers, got {array.size}")
+        raise CalibrationError(
+            path,
+            f"field '{name}' must hold {' or '.join(map(str, sizes))} "
+            f"finite numbers, got {array.size}",
+        )
     return array
 
 
 def _size(path: Path, value: Any, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0 \
-            or value != int(value):
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or value <= 0
+        or value != int(value)
+    ):
         raise CalibrationError(path, f"field '{name}' must be a positive integer, got {value!r}")
     return int(value)
 
 
 def _check_model(path: Path, model: Any, name: str) -> None:
     if str(model).lower() not in PLUMB_BOB:
-        raise CalibrationError(path, f"field '{name}' is {model!r}; only plumb_bob (radtan) "
-                               "distortion is supported")
+        raise CalibrationError(
+            path, f"field '{name}' is {model!r}; only plumb_bob (radtan) distortion is supported"
+        )
 
 
 def _model(path: Path, width: int, height: int, K: np.ndarray, dist: np.ndarray) -> CameraModel:
@@ -134,12 +152,20 @@ def _model(path: Path, width: int, height: int, K: np.ndarray, dist: np.ndarray)
 def _from_ros(path: Path, doc: dict) -> CameraModel:
     width = _size(path, _field(path, doc, "image_width"), "image_width")
     height = _size(path, _field(path, doc, "image_height"), "image_height")
-    K = _numbers(path, _field(path, _field(path, doc, "camera_matrix"), "data", "camera_matrix."),
-                 "camera_matrix.data", (9,))
+    K = _numbers(
+        path,
+        _field(path, _field(path, doc, "camera_matrix"), "data", "camera_matrix."),
+        "camera_matrix.data",
+        (9,),
+    )
     _check_model(path, doc.get("distortion_model", "plumb_bob"), "distortion_model")
     dist_block = _field(path, doc, "distortion_coefficients")
-    dist = _numbers(path, _field(path, dist_block, "data", "distortion_coefficients."),
-                    "distortion_coefficients.data", (4, 5, 8))
+    dist = _numbers(
+        path,
+        _field(path, dist_block, "data", "distortion_coefficients."),
+        "distortion_coefficients.data",
+        (4, 5, 8),
+    )
     return _model(path, width, height, K, dist)
 
 
@@ -149,11 +175,13 @@ def _from_camera_block(path: Path, block: Any) -> CameraModel:
 
     width = _size(path, get("width"), "camera.width")
     height = _size(path, get("height"), "camera.height")
-    fx, fy, cx, cy = (_numbers(path, get(k), f"camera.{k}", (1,))[0]
-                      for k in ("fx", "fy", "cx", "cy"))
+    fx, fy, cx, cy = (
+        _numbers(path, get(k), f"camera.{k}", (1,))[0] for k in ("fx", "fy", "cx", "cy")
+    )
     _check_model(path, block.get("distortion_model", "plumb_bob"), "camera.distortion_model")
-    dist = _numbers(path, block.get("distortion_coeffs", [0.0] * 5), "camera.distortion_coeffs",
-                    (4, 5, 8))
+    dist = _numbers(
+        path, block.get("distortion_coeffs", [0.0] * 5), "camera.distortion_coeffs", (4, 5, 8)
+    )
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     return _model(path, width, height, K, dist)
 
@@ -175,8 +203,10 @@ def _load_opencv(path: Path) -> CameraModel:
         K = node("camera_matrix").mat()
         dist = node("distortion_coefficients").mat()
         if K is None or dist is None:
-            raise CalibrationError(path, "fields 'camera_matrix' and 'distortion_coefficients' "
-                                   "must be opencv-matrix nodes")
+            raise CalibrationError(
+                path,
+                "fields 'camera_matrix' and 'distortion_coefficients' must be opencv-matrix nodes",
+            )
         K = _numbers(path, K, "camera_matrix", (9,))
         dist = _numbers(path, dist, "distortion_coefficients", (4, 5, 8))
     finally:

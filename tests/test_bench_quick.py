@@ -19,8 +19,9 @@ CAMERA = CameraModel.paper().resized(480, 360)
 
 def _trajectory(screen: Slideshow, distance_m: float = 1.6):
     s = screen.size_m
-    return StaticMotion(distance_m).trajectory(Rig(CAMERA, np.array([s / 2, s / 2, 0.0]),
-                                                   screen.corners()))
+    return StaticMotion(distance_m).trajectory(
+        Rig(CAMERA, np.array([s / 2, s / 2, 0.0]), screen.corners())
+    )
 
 
 def test_tiny_run_writes_reports_and_plots(tmp_path):
@@ -35,8 +36,9 @@ def test_tiny_run_writes_reports_and_plots(tmp_path):
     for name in ("streaming", "localization", "comparison"):
         assert f"<!-- bench:paper_{name} -->" in bench_md
         assert json.loads((tmp_path / "results" / f"{name}.json").read_text()) is not None
-    systems = {r["system"] for r in json.loads((tmp_path / "results" / "comparison.json")
-                                               .read_text())}
+    systems = {
+        r["system"] for r in json.loads((tmp_path / "results" / "comparison.json").read_text())
+    }
     assert {"QR v1-L", "QR v1-L + blank", "ours (events, N=16)"} <= systems
     # Rerunning one experiment keeps the others' sections.
     main(["--scale", "tiny", "--out", str(tmp_path), "--only", "streaming"])
@@ -48,8 +50,9 @@ def test_static_code_decodes(family):
     # One code on every refresh: with a new code per refresh, the progressive scan-out shows
     # the top of one code above the bottom of the previous one at any instant.
     screen = Slideshow([family.draw(7)])
-    image = FrameCamera(CAMERA).capture(screen, _trajectory(screen), 4000.0,
-                                        np.random.default_rng(0))
+    image = FrameCamera(CAMERA).capture(
+        screen, _trajectory(screen), 4000.0, np.random.default_rng(0)
+    )
     assert image.dtype == np.uint8 and image.shape == (CAMERA.height, CAMERA.width)
     assert family.read(image) == {7}
 
@@ -69,11 +72,14 @@ def test_blank_refreshes_alternate_with_codes():
     assert [screen.code_index(k) for k in range(5)] == [0, None, 1, None, 2]
 
 
-@pytest.mark.parametrize("bad", [
-    {"codes": []},
-    {"codes": [np.ones((4, 5), bool)]},
-    {"codes": [np.ones((5, 5), bool)], "size_m": 0.0},
-])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"codes": []},
+        {"codes": [np.ones((4, 5), bool)]},
+        {"codes": [np.ones((5, 5), bool)], "size_m": 0.0},
+    ],
+)
 def test_slideshow_rejects_bad_input(bad):
     with pytest.raises(ValueError):
         Slideshow(**bad)

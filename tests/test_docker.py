@@ -117,13 +117,16 @@ def free_port() -> int:
 
 
 def host_network_variant(compose: dict, port: int) -> dict:
-    """The compose file for an engine without a bridge network: every container on the host's
-    network (where published ports make no sense), the server on a free port."""
+    """The compose file for the test engine: no bridge network, so every container on the
+    host's network (where published ports make no sense) and the server on a free port; and
+    root inside, because the registry-less base image is a debootstrap tree imported with a
+    0700 "/" that no later layer can widen, which locks an unprivileged user out."""
     variant = copy.deepcopy(compose)
     for service in variant["services"].values():
         service.pop("ports", None)
         service.pop("build", None)  # built beforehand; the context is relative to the original
         service["network_mode"] = "host"
+        service["user"] = "root"
     variant["services"]["server"]["environment"]["EVENTOCC_PORT"] = str(port)
     variant["services"]["receiver"]["environment"]["EVENTOCC_SERVER"] = f"http://127.0.0.1:{port}"
     return variant

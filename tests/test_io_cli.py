@@ -8,8 +8,12 @@ from receiver.cli import main
 from receiver.events import concat, make_events
 from receiver.io import read_events, write_events
 
-EVENTS = make_events(np.arange(0, 2_000_000, 1000), np.arange(2000) % 64,
-                     np.arange(2000) % 48, np.arange(2000) % 4 == 0)
+EVENTS = make_events(
+    np.arange(0, 2_000_000, 1000),
+    np.arange(2000) % 64,
+    np.arange(2000) % 48,
+    np.arange(2000) % 4 == 0,
+)
 
 
 def test_info_prints_the_summary(tmp_path, capsys):
@@ -22,8 +26,10 @@ def test_info_prints_the_summary(tmp_path, capsys):
 
 def test_convert_between_formats(tmp_path, capsys):
     write_events(tmp_path / "a.dat", EVENTS, width=64, height=48)
-    assert main(["convert", "-q", str(tmp_path / "a.dat"), str(tmp_path / "b.raw"),
-                 "--to", "evt2"]) == 0
+    assert (
+        main(["convert", "-q", str(tmp_path / "a.dat"), str(tmp_path / "b.raw"), "--to", "evt2"])
+        == 0
+    )
     stream = read_events(tmp_path / "b.raw")
     assert (stream.format, stream.width) == ("evt2", 64)
     np.testing.assert_array_equal(concat(stream), EVENTS)

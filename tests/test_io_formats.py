@@ -10,8 +10,9 @@ import pytest
 from receiver.events import concat, make_events
 from receiver.io import EventFileError, detect_format, read_events, write_events
 
-EVENTS = make_events(np.arange(1000, 41000, 100), np.arange(400) % 64, np.arange(400) % 48,
-                     np.arange(400) % 3 == 0)
+EVENTS = make_events(
+    np.arange(1000, 41000, 100), np.arange(400) % 64, np.arange(400) % 48, np.arange(400) % 3 == 0
+)
 
 
 def test_detection_by_content_beats_extension(tmp_path, caplog):
@@ -23,10 +24,16 @@ def test_detection_by_content_beats_extension(tmp_path, caplog):
     np.testing.assert_array_equal(concat(stream), EVENTS)
 
 
-@pytest.mark.parametrize(("fmt", "name", "expected"), [
-    ("evt3", "a.bin", "raw"), ("dat", "a.bin", "dat"), ("npz", "a.bin", "npz"),
-    ("hdf5", "a.bin", "hdf5"), ("text", "a.txt", "text"),
-])
+@pytest.mark.parametrize(
+    ("fmt", "name", "expected"),
+    [
+        ("evt3", "a.bin", "raw"),
+        ("dat", "a.bin", "dat"),
+        ("npz", "a.bin", "npz"),
+        ("hdf5", "a.bin", "hdf5"),
+        ("text", "a.txt", "text"),
+    ],
+)
 def test_detect_format(tmp_path, fmt, name, expected):
     write_events(tmp_path / name, EVENTS, format=fmt, width=64, height=48)
     assert detect_format(tmp_path / name) == expected
@@ -62,10 +69,13 @@ def test_stream_metadata_before_iterating(tmp_path):
         assert stream.position == stream.size
 
 
-@pytest.mark.parametrize(("body", "seconds"), [
-    ("0.001000 3 4 1\n0.001500 5 6 0\n", True),
-    ("1000 3 4 1\n1500 5 6 -1\n", False),
-])
+@pytest.mark.parametrize(
+    ("body", "seconds"),
+    [
+        ("0.001000 3 4 1\n0.001500 5 6 0\n", True),
+        ("1000 3 4 1\n1500 5 6 -1\n", False),
+    ],
+)
 def test_text_seconds_or_microseconds(tmp_path, body, seconds):
     (tmp_path / "e.txt").write_text("# t x y p\n" + body)
     events = concat(read_events(tmp_path / "e.txt"))
@@ -118,8 +128,12 @@ def _write_bag(path, ros2: bool, pkg: str, chunks) -> None:
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
-    store.register({**get_types_from_msg(EVENT_MSG, f"{pkg}/msg/Event"),
-                    **get_types_from_msg(ARRAY_MSG.format(pkg=pkg), f"{pkg}/msg/EventArray")})
+    store.register(
+        {
+            **get_types_from_msg(EVENT_MSG, f"{pkg}/msg/Event"),
+            **get_types_from_msg(ARRAY_MSG.format(pkg=pkg), f"{pkg}/msg/EventArray"),
+        }
+    )
     T = store.types
     Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
     Event, Array = T[f"{pkg}/msg/Event"], T[f"{pkg}/msg/EventArray"]
@@ -128,9 +142,15 @@ def _write_bag(path, ros2: bool, pkg: str, chunks) -> None:
     with writer:
         conn = writer.add_connection("/dvs/events", msgtype, typestore=store)
         for i, chunk in enumerate(chunks):
-            events = [Event(x=int(e["x"]), y=int(e["y"]),
-                            ts=Time(sec=int(e["t"]) // 10**6, nanosec=int(e["t"]) % 10**6 * 1000),
-                            polarity=bool(e["p"] > 0)) for e in chunk]
+            events = [
+                Event(
+                    x=int(e["x"]),
+                    y=int(e["y"]),
+                    ts=Time(sec=int(e["t"]) // 10**6, nanosec=int(e["t"]) % 10**6 * 1000),
+                    polarity=bool(e["p"] > 0),
+                )
+                for e in chunk
+            ]
             header = {"stamp": Time(sec=i, nanosec=0), "frame_id": "camera"}
             if not ros2:
                 header["seq"] = i
@@ -139,8 +159,9 @@ def _write_bag(path, ros2: bool, pkg: str, chunks) -> None:
             writer.write(conn, i + 1, data)
 
 
-@pytest.mark.parametrize(("ros2", "pkg"), [
-    (False, "dvs_msgs"), (False, "prophesee_event_msgs"), (True, "dvs_msgs")])
+@pytest.mark.parametrize(
+    ("ros2", "pkg"), [(False, "dvs_msgs"), (False, "prophesee_event_msgs"), (True, "dvs_msgs")]
+)
 def test_rosbag_event_arrays(tmp_path, ros2, pkg):
     events = EVENTS[:50].copy()
     events["t"] += 1_700_000_000_000_000  # epoch microseconds, as drivers stamp them
@@ -159,22 +180,33 @@ def test_bag_without_event_topic_is_a_clear_error(tmp_path):
     store = get_typestore(Stores.ROS1_NOETIC)
     with Writer(tmp_path / "s.bag") as w:
         conn = w.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
-        w.write(conn, 1, store.serialize_ros1(store.types["std_msgs/msg/String"](data="hi"),
-                                             "std_msgs/msg/String"))
+        w.write(
+            conn,
+            1,
+            store.serialize_ros1(
+                store.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"
+            ),
+        )
     with pytest.raises(EventFileError, match="no event array topic"):
         read_events(tmp_path / "s.bag")
 
 
 # ----------------------------------------------------------------------------------- AEDAT4
 
+
 def test_aedat4_written_by_faery(tmp_path):
     faery = pytest.importorskip("faery")
     pytest.importorskip("aedat")
     array = np.zeros(len(EVENTS), dtype=faery.EVENTS_DTYPE)
-    array["t"], array["x"], array["y"], array["on"] = (EVENTS["t"], EVENTS["x"], EVENTS["y"],
-                                                       EVENTS["p"] > 0)
+    array["t"], array["x"], array["y"], array["on"] = (
+        EVENTS["t"],
+        EVENTS["x"],
+        EVENTS["y"],
+        EVENTS["p"] > 0,
+    )
     faery.events_stream_from_array(array, dimensions=(64, 48)).to_file(
-        tmp_path / "e.aedat4", zero_t0=False)
+        tmp_path / "e.aedat4", zero_t0=False
+    )
     stream = read_events(tmp_path / "e.aedat4")
     assert (stream.format, stream.width, stream.height) == ("aedat4", 64, 48)
     np.testing.assert_array_equal(concat(stream), EVENTS)

@@ -11,8 +11,12 @@ from receiver.io import EventFileError, read_events, write_events
 MUTANTS_PER_FORMAT = 500
 rng = np.random.default_rng(7)
 N = 120
-EVENTS = make_events(np.sort(rng.integers(0, 50_000, N)), rng.integers(0, 32, N),
-                     rng.integers(0, 24, N), rng.integers(0, 2, N))
+EVENTS = make_events(
+    np.sort(rng.integers(0, 50_000, N)),
+    rng.integers(0, 32, N),
+    rng.integers(0, 24, N),
+    rng.integers(0, 2, N),
+)
 
 
 def mutate(data: bytes, rng: np.random.Generator) -> bytes:
@@ -25,16 +29,23 @@ def mutate(data: bytes, rng: np.random.Generator) -> bytes:
         elif kind == 1:
             buf[at:at] = rng.integers(0, 256, int(rng.integers(1, 4)), dtype=np.uint8).tobytes()
         elif kind == 2:
-            del buf[at:at + int(rng.integers(1, 4))]
+            del buf[at : at + int(rng.integers(1, 4))]
         else:
             del buf[at:]
     return bytes(buf)
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize(("seed", "fmt", "name"), [
-    (1, "evt3", "f.raw"), (2, "evt2", "f.raw"), (3, "dat", "f.dat"), (4, "text", "f.txt"),
-    (5, "npz", "f.npz")])
+@pytest.mark.parametrize(
+    ("seed", "fmt", "name"),
+    [
+        (1, "evt3", "f.raw"),
+        (2, "evt2", "f.raw"),
+        (3, "dat", "f.dat"),
+        (4, "text", "f.txt"),
+        (5, "npz", "f.npz"),
+    ],
+)
 def test_mutants_never_crash_or_hang(tmp_path, seed, fmt, name):
     original = tmp_path / name
     write_events(original, EVENTS, format=fmt, width=32, height=24)

@@ -42,10 +42,13 @@ def test_evt2_vector(tmp_path):
     assert as_tuples(read_all(path)) == [(1000, 100, 200, 1)]
 
 
-@pytest.mark.parametrize(("endianness", "payload"), [
-    (";endianness=legacy", "0a00021203080000"),  # IMX636: type/time/x/y half first
-    ("", "030800000a000212"),  # GenX320: one little-endian u64
-])
+@pytest.mark.parametrize(
+    ("endianness", "payload"),
+    [
+        (";endianness=legacy", "0a00021203080000"),  # IMX636: type/time/x/y half first
+        ("", "030800000a000212"),  # GenX320: one little-endian u64
+    ],
+)
 def test_evt21_vector_both_byte_orders(tmp_path, endianness, payload):
     header = f"% evt 2.1\n% format EVT21;height=720;width=1280{endianness}\n% end\n"
     time_high = (5000 >> 6) << 32 | 0x8 << 60
@@ -70,12 +73,26 @@ def test_evt3_vector_words_including_lone_vect8(tmp_path):
     # A lone VECT_8 right after its base (OpenEB's decoder would drop it).
     lone = words("<u2", 0x8000, 0x6001, 0x0003, 0x3800, 0x5081)
     assert as_tuples(read_all(raw_file(tmp_path, EVT3, lone, "lone.raw"))) == [
-        (1, 0, 3, 1), (1, 7, 3, 1)]
+        (1, 0, 3, 1),
+        (1, 7, 3, 1),
+    ]
 
 
 def test_evt3_time_low_step_back_is_not_a_wrap_but_time_high_drop_is(tmp_path):
-    payload = words("<u2", 0x8002, 0x0005, 0x632B, 0x2001, 0x6320, 0x2002,  # TL 811 then 800
-                    0x8FFF, 0x2003, 0x8000, 0x6001, 0x2004)  # TH 4095 -> 0 wraps 24 bits
+    payload = words(
+        "<u2",
+        0x8002,
+        0x0005,
+        0x632B,
+        0x2001,
+        0x6320,
+        0x2002,  # TL 811 then 800
+        0x8FFF,
+        0x2003,
+        0x8000,
+        0x6001,
+        0x2004,
+    )  # TH 4095 -> 0 wraps 24 bits
     t = read_all(raw_file(tmp_path, EVT3, payload))["t"].tolist()
     assert t == [2 * 4096 + 811, 2 * 4096 + 800, 4095 * 4096, (1 << 24) + 1]
 
@@ -83,8 +100,10 @@ def test_evt3_time_low_step_back_is_not_a_wrap_but_time_high_drop_is(tmp_path):
 def test_dat_vector_and_type_00(tmp_path):
     for kind in (0x0C, 0x00):
         path = tmp_path / f"v{kind}.dat"
-        path.write_bytes(b"% Data file containing CD events\n% Version 2\n% Width 640\n"
-                         b"% Height 480\n" + bytes([kind, 8]) + bytes.fromhex("e803000064003210"))
+        path.write_bytes(
+            b"% Data file containing CD events\n% Version 2\n% Width 640\n"
+            b"% Height 480\n" + bytes([kind, 8]) + bytes.fromhex("e803000064003210")
+        )
         stream = read_events(path)
         assert (stream.format, stream.width, stream.height) == ("dat", 640, 480)
         assert as_tuples(concat(stream)) == [(1000, 100, 200, 1)]
@@ -95,8 +114,9 @@ def test_writers_emit_the_vectors(tmp_path):
     write_events(tmp_path / "a.dat", ev, width=640, height=480)
     assert (tmp_path / "a.dat").read_bytes().endswith(bytes.fromhex("0c08e803000064003210"))
     write_events(tmp_path / "a.raw", ev, width=1280, height=720, format="evt2")
-    assert (tmp_path / "a.raw").read_bytes().endswith(
-        b"% end\n" + bytes.fromhex("0f000080c820031a"))
+    assert (
+        (tmp_path / "a.raw").read_bytes().endswith(b"% end\n" + bytes.fromhex("0f000080c820031a"))
+    )
     write_events(tmp_path / "b.raw", ev, width=1280, height=720)
     data = (tmp_path / "b.raw").read_bytes()
     assert b"% format EVT3;height=720;width=1280\n" in data
@@ -104,6 +124,7 @@ def test_writers_emit_the_vectors(tmp_path):
 
 
 # ------------------------------------------------------------------------- real recordings
+
 
 @pytest.fixture(scope="module")
 def real_data() -> Path:
@@ -175,15 +196,19 @@ def test_small_blocks_and_chunks_decode_the_same_events(real_data, monkeypatch):
 
 # ------------------------------------------------------------------------------- bad input
 
-@pytest.mark.parametrize(("payload", "problem", "offset"), [
-    (words("<u2", 0x0005, 0x2001), "before any TIME_HIGH", 2),
-    (words("<u2", 0x8000, 0x2001), "before any ADDR_Y", 2),
-    (words("<u2", 0x8000, 0x0005, 0x4001), "before any VECT_BASE_X", 4),
-    (words("<u2", 0x8000, 0x0005, 0x27FF), "outside the sensor", 4),
-    (words("<u2", 0x8000, 0x02D0, 0x2001), "outside the sensor", 4),  # y = 720
-    (words("<u2", 0x8000, 0x0001, 0x1234), "does not define", 4),
-    (words("<u2", 0x8200, 0x0001, 0x2001, 0x8000, 0x2001), "goes back", 6),
-])
+
+@pytest.mark.parametrize(
+    ("payload", "problem", "offset"),
+    [
+        (words("<u2", 0x0005, 0x2001), "before any TIME_HIGH", 2),
+        (words("<u2", 0x8000, 0x2001), "before any ADDR_Y", 2),
+        (words("<u2", 0x8000, 0x0005, 0x4001), "before any VECT_BASE_X", 4),
+        (words("<u2", 0x8000, 0x0005, 0x27FF), "outside the sensor", 4),
+        (words("<u2", 0x8000, 0x02D0, 0x2001), "outside the sensor", 4),  # y = 720
+        (words("<u2", 0x8000, 0x0001, 0x1234), "does not define", 4),
+        (words("<u2", 0x8200, 0x0001, 0x2001, 0x8000, 0x2001), "goes back", 6),
+    ],
+)
 def test_corrupt_evt3_raises_with_offset(tmp_path, payload, problem, offset):
     path = raw_file(tmp_path, EVT3, payload)
     with pytest.raises(EventFileError, match=problem) as info:
@@ -193,8 +218,9 @@ def test_corrupt_evt3_raises_with_offset(tmp_path, payload, problem, offset):
 
 
 def test_truncated_file_raises_or_stops_cleanly(tmp_path):
-    ev = make_events(np.arange(0, 5000, 10), np.arange(500) % 100, np.arange(500) % 50,
-                     np.arange(500) % 2)
+    ev = make_events(
+        np.arange(0, 5000, 10), np.arange(500) % 100, np.arange(500) % 50, np.arange(500) % 2
+    )
     for fmt, ext in (("evt3", "raw"), ("evt2", "raw"), ("dat", "dat")):
         path = tmp_path / f"t.{ext}"
         write_events(path, ev, width=128, height=64, format=fmt)
@@ -224,7 +250,8 @@ def test_dat_rejects_other_event_types(tmp_path):
 def test_writers_reject_out_of_range_times(tmp_path):
     for fmt, t in (("evt2", 1 << 34), ("evt3", 1 << 34), ("dat", 1 << 32), ("evt3", -1)):
         with pytest.raises(ValueError, match=r"timestamps|negative"):
-            write_events(tmp_path / "x.raw", make_events([t], [0], [0], [1]), format=fmt,
-                         width=10, height=10)
+            write_events(
+                tmp_path / "x.raw", make_events([t], [0], [0], [1]), format=fmt, width=10, height=10
+            )
     with pytest.raises(ValueError, match="outside the 10x10 sensor"):
         write_events(tmp_path / "x.raw", make_events([0], [10], [0], [1]), width=10, height=10)

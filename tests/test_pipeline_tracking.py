@@ -45,7 +45,7 @@ def _edge_events(T_cam_world, t0_us, n_per_edge=60, offset_px=0.0, seed=0):
     edges = CONFIG.geometry.tracked_edges(SIZE)
     s = rng.uniform(0.05, 0.95, (8, n_per_edge, 1))
     world = edges[:, :1] + s * (edges[:, 1:] - edges[:, :1])
-    px = (CAMERA.project(world.reshape(-1, 3) @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]))
+    px = CAMERA.project(world.reshape(-1, 3) @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
     d = np.repeat(edges[:, 1, :2] - edges[:, 0, :2], n_per_edge, axis=0)
     normal = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
     px = px + offset_px * normal * rng.choice([-1, 1], (len(px), 1))
@@ -166,8 +166,10 @@ def test_marker_leaving_the_view_is_lost_then_reacquired_and_the_message_complet
 def test_tracking_follows_a_sweep_after_a_still_lock(tmp_path):
     # Still for the lock, then a smooth swing of a few degrees: about 1 px/ms of marker flow.
     keys = [(0.0, _view()), (0.6, _view())]
-    keys += [(0.6 + 0.05 * k, _view(tilt=4 * np.sin(k / 3), elevation=2 * np.sin(k / 5)))
-             for k in range(1, 13)]
+    keys += [
+        (0.6 + 0.05 * k, _view(tilt=4 * np.sin(k / 3), elevation=2 * np.sin(k / 5)))
+        for k in range(1, 13)
+    ]
     log, rec = _run(tmp_path, keys, 1.2)
     t = np.array(log.pose_t)
     moving = t > 620_000

@@ -127,8 +127,9 @@ def test_buffer_keeps_raw_chunks_and_cuts_time_windows():
 
 def test_columns_carry_ideal_coordinates_from_the_undistortion_table():
     cam = CameraModel(8, 8, K, np.array([-0.1, 0.0, 0.0, 0.0, 0.0]))
-    cols = to_columns(make_events([0, 10, 20], [1, 2, 3], [4, 5, 6], [1, -1, 1]),
-                      cam.undistort_table)
+    cols = to_columns(
+        make_events([0, 10, 20], [1, 2, 3], [4, 5, 6], [1, -1, 1]), cam.undistort_table
+    )
     assert np.allclose(cols["xu"], cam.undistort_table[[4, 5, 6], [1, 2, 3], 0])
     assert cols[cols["p"] > 0]["t"].tolist() == [0, 20]
 
@@ -148,8 +149,14 @@ def _triage(both: bool = False) -> EventTriage:
 def test_triage_keeps_when_each_pixel_burst_began():
     triage = _triage()
     # pixel (3, 4): a burst at 100..300, another at 5000; pixel (5, 6): ON at 400, OFF at 5100
-    triage(make_events([100, 200, 300, 400, 5000, 5100], [3, 3, 3, 5, 3, 5], [4, 4, 4, 6, 4, 6],
-                       [1, 1, 1, 1, 1, -1]))
+    triage(
+        make_events(
+            [100, 200, 300, 400, 5000, 5100],
+            [3, 3, 3, 5, 3, 5],
+            [4, 4, 4, 6, 4, 6],
+            [1, 1, 1, 1, 1, -1],
+        )
+    )
     bursts = triage.bursts(0, 1000, (0, 32, 0, 24))
     # (3, 4) began again at 5000; (5, 6) went off at 5100, which an ON-only surface ignores
     assert bursts["t"].tolist() == [400] and bursts["x"].tolist() == [5]

@@ -16,8 +16,12 @@ SMALL = CameraModel.paper().resized(160, 120)
 
 
 def scene(**kw) -> Scene:
-    base = {"encoder": StreamEncoder(b"contract", profile="robust", cells=16), "camera": SMALL,
-                "motion": StaticMotion(distance_m=4.0), "sensor": SensorModel.preset("gen4-indoor")}
+    base = {
+        "encoder": StreamEncoder(b"contract", profile="robust", cells=16),
+        "camera": SMALL,
+        "motion": StaticMotion(distance_m=4.0),
+        "sensor": SensorModel.preset("gen4-indoor"),
+    }
     return Scene(**(base | kw))
 
 
@@ -43,8 +47,7 @@ def test_ground_truth_poses_and_refresh_times():
         (lambda: SensorModel.preset("gen9"), "unknown sensor preset"),
         (lambda: scene(marker_size_m=-1.0), "marker_size_m must be positive"),
         (lambda: scene(start_refresh=-1), "start_refresh must be >= 0"),
-        (lambda: simulate(scene(motion=HandHeldMotion(distance_m=0.5)), 0.1),
-         "does not fit"),
+        (lambda: simulate(scene(motion=HandHeldMotion(distance_m=0.5)), 0.1), "does not fit"),
     ],
 )
 def test_bad_input_is_refused_with_a_clear_message(make, message):
@@ -56,9 +59,31 @@ def test_cli_writes_events_poses_frames_and_scene(tmp_path):
     msg = tmp_path / "msg.txt"
     msg.write_bytes(b"hello from the cli")
     out = tmp_path / "rec"
-    assert main(["simulate", "--message", str(msg), "--profile", "paper", "--duration", "0.05",
-                 "--distance", "8", "--out", str(out), "--events", "events.npz"]) == 0
-    assert {p.name for p in out.iterdir()} >= {"events.npz", "poses.tum", "frames.npz",
-                                                 "scene.json"}
+    assert (
+        main(
+            [
+                "simulate",
+                "--message",
+                str(msg),
+                "--profile",
+                "paper",
+                "--duration",
+                "0.05",
+                "--distance",
+                "8",
+                "--out",
+                str(out),
+                "--events",
+                "events.npz",
+            ]
+        )
+        == 0
+    )
+    assert {p.name for p in out.iterdir()} >= {
+        "events.npz",
+        "poses.tum",
+        "frames.npz",
+        "scene.json",
+    }
     frames = np.load(out / "frames.npz")
     assert frames["is_data"][0] and frames["payload_bits"].shape[1:] == (16, 16)

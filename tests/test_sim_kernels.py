@@ -22,15 +22,22 @@ MESSAGE = bytes(range(256))
 
 
 def _scene(**kw) -> Scene:
-    base = {"encoder": StreamEncoder(MESSAGE, profile="paper", cells=16), "camera": CAM,
-            "motion": StaticMotion(distance_m=4.0), "sensor": SensorModel.preset("ideal")}
+    base = {
+        "encoder": StreamEncoder(MESSAGE, profile="paper", cells=16),
+        "camera": CAM,
+        "motion": StaticMotion(distance_m=4.0),
+        "sensor": SensorModel.preset("ideal"),
+    }
     return Scene(**(base | kw))
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.lists(st.tuples(st.floats(0, 5000), st.integers(0, 99), st.sampled_from([-1, 1])),
-                max_size=200),
-       st.integers(0, 40))
+@given(
+    st.lists(
+        st.tuples(st.floats(0, 5000), st.integers(0, 99), st.sampled_from([-1, 1])), max_size=200
+    ),
+    st.integers(0, 40),
+)
 def test_events_come_out_sorted_by_time_and_stable_with_the_held_back_ones(raw, n_pending):
     t = np.array([r[0] for r in raw], float)
     idx = np.array([r[1] for r in raw], np.int64)
@@ -62,8 +69,9 @@ def test_a_still_camera_gives_the_same_events_whatever_the_chunk_size():
     a = concat(simulate(scene, 0.05, chunk_us=10_000))
     b = concat(simulate(scene, 0.05, chunk_us=1_300))
     assert len(a) > 1000
-    assert np.array_equal(np.sort(a, order=["t", "y", "x", "p"]),
-                          np.sort(b, order=["t", "y", "x", "p"]))
+    assert np.array_equal(
+        np.sort(a, order=["t", "y", "x", "p"]), np.sort(b, order=["t", "y", "x", "p"])
+    )
 
 
 def test_closed_form_runs_match_sampling_every_pixel_at_every_sub_step(monkeypatch):
@@ -73,8 +81,10 @@ def test_closed_form_runs_match_sampling_every_pixel_at_every_sub_step(monkeypat
     sampled = concat(simulate(scene, 0.03))
     assert len(fast) > 5000
     assert len(fast) == pytest.approx(len(sampled), rel=0.02)
-    per_pixel = [np.bincount(e["y"].astype(int) * CAM.width + e["x"],
-                             minlength=CAM.width * CAM.height) for e in (fast, sampled)]
+    per_pixel = [
+        np.bincount(e["y"].astype(int) * CAM.width + e["x"], minlength=CAM.width * CAM.height)
+        for e in (fast, sampled)
+    ]
     assert np.mean(np.abs(per_pixel[0] - per_pixel[1]) <= 1) > 0.97
 
 

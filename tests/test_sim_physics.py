@@ -30,8 +30,12 @@ OLED = Display(rise_ms=0.0, fall_ms=0.0)  # instantaneous switches: exact event 
 
 
 def small_scene(**kw) -> Scene:
-    base = {"encoder": StreamEncoder(MESSAGE, profile="paper", cells=16), "camera": SMALL,
-                "motion": StaticMotion(distance_m=3.0), "sensor": SensorModel.preset("ideal")}
+    base = {
+        "encoder": StreamEncoder(MESSAGE, profile="paper", cells=16),
+        "camera": SMALL,
+        "motion": StaticMotion(distance_m=3.0),
+        "sensor": SensorModel.preset("ideal"),
+    }
     return Scene(**(base | kw))
 
 
@@ -71,8 +75,9 @@ def test_scan_out_sweeps_event_times_top_to_bottom_over_the_configured_fraction(
     scene = small_scene(display=OLED)
     ev = events_of(scene, 0.016)
     on = ev[ev["p"] > 0]
-    corners = project_points(SMALL, scene.motion.trajectory(scene.rig).pose_at([0])[0],
-                             scene.rig.corners)
+    corners = project_points(
+        SMALL, scene.motion.trajectory(scene.rig).pose_at([0])[0], scene.rig.corners
+    )
     top, bottom = corners[:, 1].min(), corners[:, 1].max()
     slope, _ = np.polyfit(on["y"].astype(float), on["t"].astype(float), 1)
     lay, d = scene.layout, scene.display
@@ -92,9 +97,13 @@ def test_pixels_per_cell_match_the_scene_geometry():
 def test_moving_edges_fire_within_a_pixel_of_their_projection():
     enc = StreamEncoder(MESSAGE, profile="paper", cells=16, preamble=True)  # blank for 3 s
     cam = CameraModel.paper().resized(200, 150)
-    scene = Scene(encoder=enc, camera=cam, sensor=SensorModel.preset("ideal", lux=0.0),
-                  motion=HandHeldMotion(distance_m=3.2, flow_px_per_ms=1.0, seed=3),
-                  display=OLED)
+    scene = Scene(
+        encoder=enc,
+        camera=cam,
+        sensor=SensorModel.preset("ideal", lux=0.0),
+        motion=HandHeldMotion(distance_m=3.2, flow_px_per_ms=1.0, seed=3),
+        display=OLED,
+    )
     rec = simulate(scene, 0.008)
     ev = concat(rec)
     assert len(ev) > 1000

@@ -85,17 +85,25 @@ def _aruco_family(name: str, dictionary_id: int) -> CodeFamily:
 
 
 def code_families() -> list[CodeFamily]:
-    return [_qr_family(),
-            _aruco_family("AprilTag 36h11", cv2.aruco.DICT_APRILTAG_36h11),
-            _aruco_family("ArUco 6x6", cv2.aruco.DICT_6X6_1000)]
+    return [
+        _qr_family(),
+        _aruco_family("AprilTag 36h11", cv2.aruco.DICT_APRILTAG_36h11),
+        _aruco_family("ArUco 6x6", cv2.aruco.DICT_6X6_1000),
+    ]
 
 
 def marker_flow(trajectory, cam, points: np.ndarray, t_us: np.ndarray) -> np.ndarray:
     """Mean image speed (px/ms) of ``points`` at each time, by a 1 ms central difference."""
     before = trajectory.pose_at(np.asarray(t_us) - 500.0)
     after = trajectory.pose_at(np.asarray(t_us) + 500.0)
-    return np.array([np.linalg.norm(project_points(cam, a, points) - project_points(cam, b, points),
-                                    axis=1).mean() for a, b in zip(before, after, strict=True)])
+    return np.array(
+        [
+            np.linalg.norm(
+                project_points(cam, a, points) - project_points(cam, b, points), axis=1
+            ).mean()
+            for a, b in zip(before, after, strict=True)
+        ]
+    )
 
 
 @dataclass(frozen=True)
@@ -114,10 +122,14 @@ class Outcome:
 @lru_cache(maxsize=8)
 def _scene(flow: float, seed: int, sensor: Sensor) -> Scene:
     message = np.random.default_rng(seed).integers(0, 256, 1024, dtype=np.uint8).tobytes()
-    return Scene(encoder=StreamEncoder(message, profile="robust", cells=16),
-                 marker_size_m=MARKER_M, camera=camera(sensor),
-                 motion=HandHeldMotion(fitting_distance(sensor, DISTANCE_M), flow, seed=seed),
-                 sensor=SensorModel.preset("gen4-indoor", lux=250.0), seed=seed)
+    return Scene(
+        encoder=StreamEncoder(message, profile="robust", cells=16),
+        marker_size_m=MARKER_M,
+        camera=camera(sensor),
+        motion=HandHeldMotion(fitting_distance(sensor, DISTANCE_M), flow, seed=seed),
+        sensor=SensorModel.preset("gen4-indoor", lux=250.0),
+        seed=seed,
+    )
 
 
 @lru_cache(maxsize=8)
@@ -125,17 +137,30 @@ def _trajectory(scene: Scene):
     return scene.motion.trajectory(scene.rig)  # calibrating a hand-held motion takes seconds
 
 
-def run_frame_baseline(family: CodeFamily, blank_between: bool, flow: float, seed: int,
-                       duration_s: float, sensor: Sensor) -> Outcome:
+def run_frame_baseline(
+    family: CodeFamily,
+    blank_between: bool,
+    flow: float,
+    seed: int,
+    duration_s: float,
+    sensor: Sensor,
+) -> Outcome:
     t0 = time.perf_counter()
     scene = _scene(flow, seed, sensor)
     refreshes = int(duration_s * scene.display.refresh_hz)
     if refreshes > family.capacity:
-        raise ValueError(f"{duration_s} s shows {refreshes} codes but {family.name} has only "
-                         f"{family.capacity} payloads: shorten the clip")
+        raise ValueError(
+            f"{duration_s} s shows {refreshes} codes but {family.name} has only "
+            f"{family.capacity} payloads: shorten the clip"
+        )
     trajectory = _trajectory(scene)  # the event camera's motion, exactly
-    screen = Slideshow([family.draw(i) for i in range(refreshes)], MARKER_M, blank_between,
-                       scene.display, scene.sensor.lux)
+    screen = Slideshow(
+        [family.draw(i) for i in range(refreshes)],
+        MARKER_M,
+        blank_between,
+        scene.display,
+        scene.sensor.lux,
+    )
     cam = FrameCamera(scene.camera)
     received: set[int] = set()
     for _, image in cam.frames(screen, trajectory, duration_s, seed):
@@ -145,8 +170,9 @@ def run_frame_baseline(family: CodeFamily, blank_between: bool, flow: float, see
     flow_px = marker_flow(trajectory, scene.camera, screen.corners(), t_mid)
     got = np.array([screen.code_index(k) in received for k in shown])
     name = f"{family.name}" + (" + blank" if blank_between else "")
-    return Outcome(name, flow_px, got, float(got.sum() * family.bits / duration_s),
-                   time.perf_counter() - t0)
+    return Outcome(
+        name, flow_px, got, float(got.sum() * family.bits / duration_s), time.perf_counter() - t0
+    )
 
 
 def run_event(flow: float, seed: int, duration_s: float, sensor: Sensor) -> Outcome:
@@ -162,6 +188,7 @@ def run_event(flow: float, seed: int, duration_s: float, sensor: Sensor) -> Outc
     # A read frame's time falls inside its refresh; allow one refresh of slack either way.
     got = np.array([any(j in exact for j in (k - 1, k, k + 1)) for k in shown], bool)
     trajectory = _trajectory(scene)
-    flow_px = marker_flow(trajectory, scene.camera, scene.rig.corners,
-                          (np.array(shown, float) + 0.5) * period)
+    flow_px = marker_flow(
+        trajectory, scene.camera, scene.rig.corners, (np.array(shown, float) + 0.5) * period
+    )
     return Outcome("ours (events, N=16)", flow_px, got, run.report["goodput_bps"], run.wall_s)

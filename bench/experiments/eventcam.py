@@ -47,9 +47,13 @@ def run_event_receiver(scene: Scene, duration_s: float) -> EventRun:
     """Simulate ``duration_s`` of ``scene`` and decode it with the streaming receiver."""
     t0 = time.perf_counter()
     enc = scene.encoder
-    config = ReceiverConfig(scene.camera, cells=enc.geometry.cells, profile=enc.profile.name,
-                            refresh_hz=scene.display.refresh_hz,
-                            marker_size_m=scene.marker_size_m)
+    config = ReceiverConfig(
+        scene.camera,
+        cells=enc.geometry.cells,
+        profile=enc.profile.name,
+        refresh_hz=scene.display.refresh_hz,
+        marker_size_m=scene.marker_size_m,
+    )
     receiver = Receiver(config, message_size=len(enc.message))
     log = DecodeLog(receiver, FrameTruth(enc, scene.display.refresh_hz, scene.start_refresh))
     recording = simulate(scene, duration_s=duration_s)
@@ -66,5 +70,11 @@ def run_event_receiver(scene: Scene, duration_s: float) -> EventRun:
     t = np.array(log.pose_t, np.int64)
     poses = np.array(log.poses).reshape(-1, 4, 4)
     truth = recording.pose_at(t) if len(t) else np.empty((0, 4, 4))
-    return EventRun(log.report(), t, poses, truth, np.array(frames, np.int64).reshape(-1, 2),
-                    time.perf_counter() - t0)
+    return EventRun(
+        log.report(),
+        t,
+        poses,
+        truth,
+        np.array(frames, np.int64).reshape(-1, 2),
+        time.perf_counter() - t0,
+    )

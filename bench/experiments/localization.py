@@ -56,16 +56,22 @@ class SequenceResult:
 
     def to_dict(self) -> dict:
         """JSON-ready: NaN (no poses to score) becomes None."""
-        return {k: None if isinstance(v, float) and math.isnan(v) else v
-                for k, v in asdict(self).items()}
+        return {
+            k: None if isinstance(v, float) and math.isnan(v) else v
+            for k, v in asdict(self).items()
+        }
 
 
 def scene(seed: int, flow: float, sensor: Sensor) -> Scene:
     message = np.random.default_rng(seed).integers(0, 256, MESSAGE_BYTES, np.uint8).tobytes()
-    return Scene(encoder=StreamEncoder(message, profile="paper", cells=16), marker_size_m=0.272,
-                 camera=camera(sensor),
-                 motion=HandHeldMotion(fitting_distance(sensor, DISTANCE_M), flow, seed=seed),
-                 sensor=SensorModel.preset("gen4-indoor", lux=250.0), seed=seed)
+    return Scene(
+        encoder=StreamEncoder(message, profile="paper", cells=16),
+        marker_size_m=0.272,
+        camera=camera(sensor),
+        motion=HandHeldMotion(fitting_distance(sensor, DISTANCE_M), flow, seed=seed),
+        sensor=SensorModel.preset("gen4-indoor", lux=250.0),
+        seed=seed,
+    )
 
 
 def score(seed: int, flow: float, run: EventRun, duration_s: float) -> SequenceResult:
@@ -76,12 +82,23 @@ def score(seed: int, flow: float, run: EventRun, duration_s: float) -> SequenceR
         rot, trans, ate = err.rpe_rot_rmse_deg, err.rpe_trans_rmse_m * 100, err.ate_rmse_m * 100
     rep = run.report
     decodable = any(m["verified"] for m in rep["messages"])
-    return SequenceResult(seed, flow, duration_s, rot, trans, ate, rep["ber"], decodable,
-                          len(run.pose_t_us), run.wall_s)
+    return SequenceResult(
+        seed,
+        flow,
+        duration_s,
+        rot,
+        trans,
+        ate,
+        rep["ber"],
+        decodable,
+        len(run.pose_t_us),
+        run.wall_s,
+    )
 
 
-def run_sequence(seed: int, flow: float, duration_s: float, sensor: Sensor
-                 ) -> tuple[SequenceResult, EventRun]:
+def run_sequence(
+    seed: int, flow: float, duration_s: float, sensor: Sensor
+) -> tuple[SequenceResult, EventRun]:
     run = run_event_receiver(scene(seed, flow, sensor), duration_s)
     return score(seed, flow, run, duration_s), run
 

@@ -49,8 +49,15 @@ def raw_bps(cells: int, refresh_hz: float, data_every: int) -> float:
     return cells**2 * refresh_hz / data_every
 
 
-def run_point(profile: str, refresh_hz: float, cells: int, lux: float, seed: int,
-              duration_s: float, sensor: Sensor) -> StreamingPoint:
+def run_point(
+    profile: str,
+    refresh_hz: float,
+    cells: int,
+    lux: float,
+    seed: int,
+    duration_s: float,
+    sensor: Sensor,
+) -> StreamingPoint:
     cam = camera(sensor)
     probe = StreamEncoder(b"\0", profile=profile, cells=cells)
     limit = raw_bps(cells, refresh_hz, probe.profile.data_every)
@@ -72,5 +79,6 @@ def run_point(profile: str, refresh_hz: float, cells: int, lux: float, seed: int
     done = [m for m in rep["messages"] if m["verified"]]
     lock_s = rep["time_to_lock_s"]
     goodput = size * 8 / (done[0]["t_s"] - lock_s) if done and lock_s is not None else 0.0
-    return StreamingPoint(profile, refresh_hz, cells, lux, seed, rep["ber"], goodput, limit,
-                          rep["locked"], run.wall_s)
+    return StreamingPoint(
+        profile, refresh_hz, cells, lux, seed, rep["ber"], goodput, limit, rep["locked"], run.wall_s
+    )

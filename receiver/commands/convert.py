@@ -14,18 +14,26 @@ def run(args: argparse.Namespace) -> int:
         width = args.width or stream.width
         height = args.height or stream.height
         if not width or not height:
-            raise SystemExit(f"{args.input} does not state its sensor size; "
-                             "pass --width and --height")
-        with tqdm(total=stream.size, unit="B", unit_scale=True, disable=args.quiet or None,
-                  desc="convert", leave=False) as bar:
+            raise SystemExit(
+                f"{args.input} does not state its sensor size; pass --width and --height"
+            )
+        with tqdm(
+            total=stream.size,
+            unit="B",
+            unit_scale=True,
+            disable=args.quiet or None,
+            desc="convert",
+            leave=False,
+        ) as bar:
 
             def chunks():
                 for chunk in stream:
                     bar.update(stream.position - bar.n)
                     yield chunk
 
-            count = write_events(args.output, chunks(), format=args.to_format, width=width,
-                                 height=height)
+            count = write_events(
+                args.output, chunks(), format=args.to_format, width=width, height=height
+            )
     print(f"wrote {count:,} events to {args.output}")
     return 0
 
@@ -34,10 +42,15 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("convert", help="convert an event file to another format")
     p.add_argument("input", help="event file to read")
     p.add_argument("output", help="file to write (format from --to or the extension)")
-    p.add_argument("--from", dest="from_format", choices=READ_FORMATS,
-                   help="input format (default: detected)")
-    p.add_argument("--to", dest="to_format", choices=WRITE_FORMATS,
-                   help="output format (default: from the extension; .raw is EVT 3.0)")
+    p.add_argument(
+        "--from", dest="from_format", choices=READ_FORMATS, help="input format (default: detected)"
+    )
+    p.add_argument(
+        "--to",
+        dest="to_format",
+        choices=WRITE_FORMATS,
+        help="output format (default: from the extension; .raw is EVT 3.0)",
+    )
     p.add_argument("--width", type=int, help="sensor width, if the input does not say")
     p.add_argument("--height", type=int, help="sensor height, if the input does not say")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

@@ -32,8 +32,8 @@ class EventFileSummary:
         share = self.positive / self.count if self.count else 0.0
         lines = [
             f"format      {self.format}",
-            f"resolution  {size}" + (f" (events reach x={self.max_x}, y={self.max_y})"
-                                     if self.count else ""),
+            f"resolution  {size}"
+            + (f" (events reach x={self.max_x}, y={self.max_y})" if self.count else ""),
             f"events      {self.count:,}",
         ]
         if self.count:
@@ -50,21 +50,29 @@ def summarize(stream: EventStream, progress: bool = False) -> EventFileSummary:
     """Count and time range of a stream, read to its end."""
     count = positive = max_x = max_y = 0
     t_first = t_last = None
-    with tqdm(total=stream.size, unit="B", unit_scale=True, disable=not progress or None,
-              desc=stream.path.name, leave=False) as bar:
+    with tqdm(
+        total=stream.size,
+        unit="B",
+        unit_scale=True,
+        disable=not progress or None,
+        desc=stream.path.name,
+        leave=False,
+    ) as bar:
         for chunk in stream:
             bar.update(stream.position - bar.n)
             if not len(chunk):
                 continue
-            t_first = int(chunk["t"].min()) if t_first is None else min(t_first,
-                                                                        int(chunk["t"].min()))
+            t_first = (
+                int(chunk["t"].min()) if t_first is None else min(t_first, int(chunk["t"].min()))
+            )
             t_last = int(chunk["t"].max()) if t_last is None else max(t_last, int(chunk["t"].max()))
             count += len(chunk)
             positive += int((chunk["p"] > 0).sum())
             max_x = max(max_x, int(chunk["x"].max()))
             max_y = max(max_y, int(chunk["y"].max()))
-    return EventFileSummary(stream.format, stream.width, stream.height, count, t_first, t_last,
-                            positive, max_x, max_y)
+    return EventFileSummary(
+        stream.format, stream.width, stream.height, count, t_first, t_last, positive, max_x, max_y
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -16,25 +16,32 @@ log = logging.getLogger(__name__)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("simulate", help="simulate an event camera watching the marker",
-                       description=__doc__)
+    p = sub.add_parser(
+        "simulate", help="simulate an event camera watching the marker", description=__doc__
+    )
     p.add_argument("--message", type=Path, required=True, help="file whose bytes are sent")
     p.add_argument("--profile", choices=PROFILE_NAMES, default=DEFAULT_PROFILE)
     p.add_argument("--cells", type=int, default=16, help="payload cells across (N)")
     p.add_argument("--motion", choices=("static", "handheld"), default="static")
     p.add_argument("--trajectory", type=Path, help="TUM file of T_world_cam (overrides --motion)")
-    p.add_argument("--distance", type=float, help="metres to the marker (default 1.25 static, "
-                   "0.6 hand-held)")
+    p.add_argument(
+        "--distance", type=float, help="metres to the marker (default 1.25 static, 0.6 hand-held)"
+    )
     p.add_argument("--flow", type=float, default=1.0, help="hand-held mean marker flow, px/ms")
-    p.add_argument("--marker-size", type=float, default=0.272,
-                   help="side of the white ring's outer boundary, metres")
+    p.add_argument(
+        "--marker-size",
+        type=float,
+        default=0.272,
+        help="side of the white ring's outer boundary, metres",
+    )
     p.add_argument("--duration", type=float, default=5.0, help="seconds")
     p.add_argument("--preset", choices=tuple(PRESETS), default="gen4-indoor")
     p.add_argument("--lux", type=float, help="ambient light (default: the preset's)")
     p.add_argument("--start-refresh", type=int, default=0)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--events", default="events.raw",
-                   help="events file name; its extension picks the format")
+    p.add_argument(
+        "--events", default="events.raw", help="events file name; its extension picks the format"
+    )
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.set_defaults(func=run)
 
@@ -45,19 +52,24 @@ def run(args: argparse.Namespace) -> int:
     elif args.motion == "static":
         motion = StaticMotion(distance_m=args.distance or 1.25)
     else:
-        motion = HandHeldMotion(distance_m=args.distance or 0.6, flow_px_per_ms=args.flow,
-                                seed=args.seed)
+        motion = HandHeldMotion(
+            distance_m=args.distance or 0.6, flow_px_per_ms=args.flow, seed=args.seed
+        )
     scene = Scene(
-        encoder=StreamEncoder(args.message.read_bytes(), name=args.message.name,
-                              profile=args.profile, cells=args.cells),
+        encoder=StreamEncoder(
+            args.message.read_bytes(),
+            name=args.message.name,
+            profile=args.profile,
+            cells=args.cells,
+        ),
         marker_size_m=args.marker_size,
         motion=motion,
         sensor=SensorModel.preset(args.preset, lux=args.lux),
         start_refresh=args.start_refresh,
         seed=args.seed,
     )
-    summary = write_recording(simulate(scene, args.duration), args.out,
-                              events_name=args.events)
-    log.info("wrote %d events (%.2f s) to %s", summary["events"], summary["duration_s"],
-             summary["dir"])
+    summary = write_recording(simulate(scene, args.duration), args.out, events_name=args.events)
+    log.info(
+        "wrote %d events (%.2f s) to %s", summary["events"], summary["duration_s"], summary["dir"]
+    )
     return 0

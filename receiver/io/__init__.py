@@ -112,18 +112,33 @@ def detect_format(path: str | Path) -> str:
     by_content = _format_by_content(path)
     by_extension = EXTENSIONS.get(path.suffix.lower(), (None, None))[0]
     if by_content and by_extension and by_content != by_extension:
-        log.warning("%s: content is %s although the extension says %s; reading it as %s",
-                    path, by_content, by_extension, by_content)
+        log.warning(
+            "%s: content is %s although the extension says %s; reading it as %s",
+            path,
+            by_content,
+            by_extension,
+            by_content,
+        )
     fmt = by_content or by_extension
     if fmt is None:
-        raise EventFileError(path, "cannot tell the event format from the content or the "
-                             f"extension; pass one of {READ_FORMATS}", offset=0)
+        raise EventFileError(
+            path,
+            "cannot tell the event format from the content or the "
+            f"extension; pass one of {READ_FORMATS}",
+            offset=0,
+        )
     return fmt
 
 
-def read_events(path: str | Path, *, format: str | None = None, chunk_events: int | None = None,
-                chunk_us: int | None = None, on_error: str = "raise",
-                monotonic: bool = False) -> EventStream:
+def read_events(
+    path: str | Path,
+    *,
+    format: str | None = None,
+    chunk_events: int | None = None,
+    chunk_us: int | None = None,
+    on_error: str = "raise",
+    monotonic: bool = False,
+) -> EventStream:
     """Stream the events of a file as chunks of ``receiver.events.EVENT_DTYPE``.
 
     ``chunk_events`` / ``chunk_us`` re-cut the chunks by count or time window (at most one).
@@ -175,8 +190,14 @@ def _stop_on_error(chunks: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
         warnings.warn(f"stopped reading early: {e}", UserWarning, stacklevel=2)
 
 
-def write_events(path: str | Path, chunks: np.ndarray | Iterable[np.ndarray], *,
-                 format: str | None = None, width: int, height: int) -> int:
+def write_events(
+    path: str | Path,
+    chunks: np.ndarray | Iterable[np.ndarray],
+    *,
+    format: str | None = None,
+    width: int,
+    height: int,
+) -> int:
     """Write event chunks (or one array) to ``path``; returns the number of events written.
 
     The format comes from ``format`` or the extension (``.raw`` is written as EVT 3.0).
@@ -186,8 +207,10 @@ def write_events(path: str | Path, chunks: np.ndarray | Iterable[np.ndarray], *,
     if format is None:
         format = EXTENSIONS.get(path.suffix.lower(), (None, None))[1]
         if format is None:
-            raise ValueError(f"cannot tell the format to write from {path.name!r}; pass "
-                             f"format= one of {WRITE_FORMATS}")
+            raise ValueError(
+                f"cannot tell the format to write from {path.name!r}; pass "
+                f"format= one of {WRITE_FORMATS}"
+            )
     if format not in WRITERS:
         raise ValueError(f"cannot write {format!r}; choose one of {WRITE_FORMATS}")
     return WRITERS[format](path, chunks, width=width, height=height)

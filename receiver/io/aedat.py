@@ -33,8 +33,14 @@ def _event_stream(path: Path, decoder) -> tuple[int, int, int]:
 
 def open_aedat4(path: Path) -> EventStream:
     _, width, height = _event_stream(path, _decoder(path))
-    return EventStream(_packets(path, width, height), path=path, format="aedat4",
-                       width=width, height=height, size=path.stat().st_size)
+    return EventStream(
+        _packets(path, width, height),
+        path=path,
+        format="aedat4",
+        width=width,
+        height=height,
+        size=path.stat().st_size,
+    )
 
 
 def _packets(path: Path, width: int, height: int) -> Iterator[Progressed]:
@@ -58,5 +64,6 @@ def _packets(path: Path, width: int, height: int) -> Iterator[Progressed]:
     except (RuntimeError, OSError, ValueError) as e:
         if isinstance(e, EventFileError):
             raise
-        raise EventFileError(path, f"corrupt AEDAT4 packet ({e})",
-                             where=f"after packet {index}") from None
+        raise EventFileError(
+            path, f"corrupt AEDAT4 packet ({e})", where=f"after packet {index}"
+        ) from None

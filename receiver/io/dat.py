@@ -45,16 +45,26 @@ def open_dat(path: Path) -> EventStream:
                 raise EventFileError(path, "file ends before the event type bytes", offset=offset)
             if kind[0] not in CD_TYPES or kind[1] != RECORD.itemsize:
                 raise EventFileError(
-                    path, f"event type 0x{kind[0]:02x} of size {kind[1]} is not CD events "
-                    "(type 0x00 or 0x0c, size 8)", offset=offset)
+                    path,
+                    f"event type 0x{kind[0]:02x} of size {kind[1]} is not CD events "
+                    "(type 0x00 or 0x0c, size 8)",
+                    offset=offset,
+                )
             offset += 2
     width, height = header_geometry(header) or (None, None)
-    return EventStream(_records(path, offset, width, height), path=path, format="dat",
-                       width=width, height=height, size=path.stat().st_size)
+    return EventStream(
+        _records(path, offset, width, height),
+        path=path,
+        format="dat",
+        width=width,
+        height=height,
+        size=path.stat().st_size,
+    )
 
 
-def _records(path: Path, offset: int, width: int | None,
-             height: int | None) -> Iterator[Progressed]:
+def _records(
+    path: Path, offset: int, width: int | None, height: int | None
+) -> Iterator[Progressed]:
     checker = EventChecker(width, height, COORD_LIMIT)
     wraps = 0  # u32 timestamps wrap every 71.6 min; a long recording counts the wraps
     last_t = 0
@@ -86,26 +96,40 @@ def _records(path: Path, offset: int, width: int | None,
                 yield events, offset + whole
             offset += whole
             if whole < len(block):
-                raise EventFileError(path, "file ends inside an 8-byte record (truncated)",
-                                     offset=offset)
+                raise EventFileError(
+                    path, "file ends inside an 8-byte record (truncated)", offset=offset
+                )
 
 
 def write_dat(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: int) -> int:
     if not (0 < width <= COORD_LIMIT and 0 < height <= COORD_LIMIT):
-        raise ValueError(f"DAT holds sensors up to {COORD_LIMIT}x{COORD_LIMIT}, "
-                         f"got {width}x{height}")
+        raise ValueError(
+            f"DAT holds sensors up to {COORD_LIMIT}x{COORD_LIMIT}, got {width}x{height}"
+        )
     count = 0
     with path.open("wb") as f:
-        f.write(write_header({"Data": "file containing CD events", "Version": "2",
-                              "Width": str(width), "Height": str(height)}, end=False))
+        f.write(
+            write_header(
+                {
+                    "Data": "file containing CD events",
+                    "Version": "2",
+                    "Width": str(width),
+                    "Height": str(height),
+                },
+                end=False,
+            )
+        )
         f.write(bytes([0x0C, RECORD.itemsize]))
         for chunk in as_event_chunks(chunks):
             chunk = sorted_by_time(chunk)
             check_writable(chunk, format="DAT", width=width, height=height, max_t=MAX_T)
             rec = np.empty(len(chunk), RECORD)
             rec["t"] = chunk["t"]
-            rec["w"] = (chunk["x"].astype(np.uint32) | (chunk["y"].astype(np.uint32) << 14)
-                        | ((chunk["p"] > 0).astype(np.uint32) << 28))
+            rec["w"] = (
+                chunk["x"].astype(np.uint32)
+                | (chunk["y"].astype(np.uint32) << 14)
+                | ((chunk["p"] > 0).astype(np.uint32) << 28)
+            )
             f.write(rec.tobytes())
             count += len(chunk)
     return count

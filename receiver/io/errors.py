@@ -12,8 +12,9 @@ class EventFileError(ValueError):
     formats without a byte layout, such as HDF5 datasets).
     """
 
-    def __init__(self, path: str | Path, problem: str, *, offset: int | None = None,
-                 where: str | None = None) -> None:
+    def __init__(
+        self, path: str | Path, problem: str, *, offset: int | None = None, where: str | None = None
+    ) -> None:
         self.path = Path(path)
         self.offset = offset
         self.problem = problem
@@ -26,6 +27,4 @@ class MissingExtraError(ImportError):
     """A format whose reader lives in an optional extra that is not installed."""
 
     def __init__(self, what: str, package: str, extra: str) -> None:
-        super().__init__(
-            f"{what} needs the '{package}' package: pip install 'eventocc[{extra}]'"
-        )
+        super().__init__(f"{what} needs the '{package}' package: pip install 'eventocc[{extra}]'")

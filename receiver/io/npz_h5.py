@@ -53,8 +53,13 @@ def _columns_to_events(t, x, y, p, t_offset: int) -> np.ndarray:
     return events
 
 
-def _checked(path: Path, pieces: Iterator[tuple[np.ndarray, int]], checker: EventChecker,
-             n_total: int, size: int) -> Iterator[Progressed]:
+def _checked(
+    path: Path,
+    pieces: Iterator[tuple[np.ndarray, int]],
+    checker: EventChecker,
+    n_total: int,
+    size: int,
+) -> Iterator[Progressed]:
     """Yield checked chunks; ``pieces`` yields (events, index of the first one)."""
     for events, start in pieces:
         problem = checker.first_problem(events)
@@ -80,17 +85,27 @@ def open_hdf5(path: Path) -> EventStream:
         raise EventFileError(path, f"not a readable HDF5 file ({e})", offset=0) from None
     with f:
         if "events" not in f or not {"t", "x", "y", "p"} <= set(f["events"]):
-            raise EventFileError(path, "no /events/{t,x,y,p} datasets (DSEC layout); "
-                                 f"top-level keys: {sorted(f)}", where="in the HDF5 tree")
+            raise EventFileError(
+                path,
+                f"no /events/{{t,x,y,p}} datasets (DSEC layout); top-level keys: {sorted(f)}",
+                where="in the HDF5 tree",
+            )
         lengths = {len(f["events"][k]) for k in "txyp"}
         if len(lengths) != 1:
-            raise EventFileError(path, f"/events columns differ in length: {lengths}",
-                                 where="in /events")
+            raise EventFileError(
+                path, f"/events columns differ in length: {lengths}", where="in /events"
+            )
         attrs = f["events"].attrs
         width, height = _geometry(attrs.get("width"), attrs.get("height"))
         n_total = lengths.pop()
-    return EventStream(_hdf5_chunks(path, width, height, n_total), path=path, format="hdf5",
-                       width=width, height=height, size=path.stat().st_size)
+    return EventStream(
+        _hdf5_chunks(path, width, height, n_total),
+        path=path,
+        format="hdf5",
+        width=width,
+        height=height,
+        size=path.stat().st_size,
+    )
 
 
 def _hdf5_chunks(path: Path, width, height, n_total: int) -> Iterator[Progressed]:
@@ -105,13 +120,17 @@ def _hdf5_chunks(path: Path, width, height, n_total: int) -> Iterator[Progressed
                 try:
                     t, x, y, p = (c[start:stop] for c in cols)
                 except OSError as e:  # e.g. a compression filter that is not installed
-                    raise EventFileError(path, f"cannot read /events ({e}); Blosc/Zstd files "
-                                         "need 'pip install hdf5plugin'",
-                                         where=f"at event {start}") from None
+                    raise EventFileError(
+                        path,
+                        f"cannot read /events ({e}); Blosc/Zstd files "
+                        "need 'pip install hdf5plugin'",
+                        where=f"at event {start}",
+                    ) from None
                 yield _columns_to_events(t, x, y, p, t_offset), start
 
-        yield from _checked(path, pieces(), EventChecker(width, height), n_total,
-                            path.stat().st_size)
+        yield from _checked(
+            path, pieces(), EventChecker(width, height), n_total, path.stat().st_size
+        )
 
 
 def write_hdf5(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: int) -> int:
@@ -121,9 +140,18 @@ def write_hdf5(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: 
     with h5py.File(path, "w") as f:
         group = f.create_group("events")
         group.attrs["width"], group.attrs["height"] = width, height
-        cols = {k: group.create_dataset(k, shape=(0,), maxshape=(None,), dtype=dt,
-                                        chunks=(1 << 16,), compression="gzip", shuffle=True)
-                for k, dt in (("t", "i8"), ("x", "u2"), ("y", "u2"), ("p", "u1"))}
+        cols = {
+            k: group.create_dataset(
+                k,
+                shape=(0,),
+                maxshape=(None,),
+                dtype=dt,
+                chunks=(1 << 16,),
+                compression="gzip",
+                shuffle=True,
+            )
+            for k, dt in (("t", "i8"), ("x", "u2"), ("y", "u2"), ("p", "u1"))
+        }
         t_offset = None
         t_max = np.iinfo(np.int64).min
         ms_to_idx: list[np.ndarray] = []
@@ -136,8 +164,12 @@ def write_hdf5(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: 
             if t_offset is None:
                 t_offset = int(chunk["t"][0])
             rel = chunk["t"] - t_offset
-            for k, values in (("t", rel), ("x", chunk["x"]), ("y", chunk["y"]),
-                              ("p", chunk["p"] > 0)):
+            for k, values in (
+                ("t", rel),
+                ("x", chunk["x"]),
+                ("y", chunk["y"]),
+                ("p", chunk["p"] > 0),
+            ):
                 cols[k].resize((count + len(chunk),))
                 cols[k][count:] = values
             # ms_to_idx[ms]: first event at or after ms (over the running maximum of t).
@@ -163,29 +195,50 @@ def open_npz(path: Path) -> EventStream:
         try:
             t, x, y, p = (data[k] for k in "txyp")
             t_offset = int(data["t_offset"]) if "t_offset" in data.files else 0
-            width, height = _geometry(data["width"] if "width" in data.files else None,
-                                      data["height"] if "height" in data.files else None)
+            width, height = _geometry(
+                data["width"] if "width" in data.files else None,
+                data["height"] if "height" in data.files else None,
+            )
         except KeyError as e:
-            raise EventFileError(path, f"missing array {e}; expected t, x, y, p",
-                                 where="in the npz") from None
+            raise EventFileError(
+                path, f"missing array {e}; expected t, x, y, p", where="in the npz"
+            ) from None
         except NPZ_ERRORS as e:
             raise EventFileError(path, f"corrupt npz member ({e})", where="in the npz") from None
     if not len(t) == len(x) == len(y) == len(p) or t.ndim != 1:
-        raise EventFileError(path, "arrays t, x, y, p must be 1-D and of one length",
-                             where="in the npz")
+        raise EventFileError(
+            path, "arrays t, x, y, p must be 1-D and of one length", where="in the npz"
+        )
     if not all(np.issubdtype(a.dtype, np.integer) or a.dtype == bool for a in (t, x, y, p)):
         raise EventFileError(path, "arrays t, x, y, p must be integers", where="in the npz")
     n = len(t)
-    if (x.min(initial=0) < 0) or (y.min(initial=0) < 0) or max(
-            x.max(initial=0), y.max(initial=0)) >= 1 << 16:
+    if (
+        (x.min(initial=0) < 0)
+        or (y.min(initial=0) < 0)
+        or max(x.max(initial=0), y.max(initial=0)) >= 1 << 16
+    ):
         raise EventFileError(path, "x or y outside 0..65535", where="in the npz")
-    pieces = ((_columns_to_events(t[s:s + CHUNK_EVENTS], x[s:s + CHUNK_EVENTS],
-                                  y[s:s + CHUNK_EVENTS], p[s:s + CHUNK_EVENTS], t_offset), s)
-              for s in range(0, n, CHUNK_EVENTS))
-    return EventStream(_checked(path, pieces, EventChecker(width, height), n,
-                                path.stat().st_size),
-                       path=path, format="npz", width=width, height=height,
-                       size=path.stat().st_size)
+    pieces = (
+        (
+            _columns_to_events(
+                t[s : s + CHUNK_EVENTS],
+                x[s : s + CHUNK_EVENTS],
+                y[s : s + CHUNK_EVENTS],
+                p[s : s + CHUNK_EVENTS],
+                t_offset,
+            ),
+            s,
+        )
+        for s in range(0, n, CHUNK_EVENTS)
+    )
+    return EventStream(
+        _checked(path, pieces, EventChecker(width, height), n, path.stat().st_size),
+        path=path,
+        format="npz",
+        width=width,
+        height=height,
+        size=path.stat().st_size,
+    )
 
 
 def write_npz(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: int) -> int:
@@ -194,7 +247,14 @@ def write_npz(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: i
     check_writable(events, format="npz", width=width, height=height, max_t=MAX_T)
     t_offset = int(events["t"][0]) if len(events) else 0
     with path.open("wb") as f:  # a file object, so numpy does not append ".npz"
-        np.savez_compressed(f, t=events["t"] - t_offset, x=events["x"], y=events["y"],
-                            p=(events["p"] > 0).astype(np.uint8), t_offset=np.int64(t_offset),
-                            width=np.int64(width), height=np.int64(height))
+        np.savez_compressed(
+            f,
+            t=events["t"] - t_offset,
+            x=events["x"],
+            y=events["y"],
+            p=(events["p"] > 0).astype(np.uint8),
+            t_offset=np.int64(t_offset),
+            width=np.int64(width),
+            height=np.int64(height),
+        )
     return len(events)

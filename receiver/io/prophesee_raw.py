@@ -166,8 +166,19 @@ def _decode_evt2(words, state, ot, ox, oy, op, width, height):
             if high < 0:
                 err = NO_TIME
             else:
-                err = _push(ot, ox, oy, op, n, (high << 6) | ((w >> 22) & 0x3F),
-                            (w >> 11) & 0x7FF, w & 0x7FF, kind, width, height)
+                err = _push(
+                    ot,
+                    ox,
+                    oy,
+                    op,
+                    n,
+                    (high << 6) | ((w >> 22) & 0x3F),
+                    (w >> 11) & 0x7FF,
+                    w & 0x7FF,
+                    kind,
+                    width,
+                    height,
+                )
                 n += err == OK
         elif kind == 0x8:  # EVT_TIME_HIGH: t[33:6]
             high = w & 0x0FFFFFFF
@@ -263,8 +274,12 @@ def open_raw(path: Path, encoding: str | None = None, *, monotonic: bool = False
     named = header_encoding(header)
     if encoding is None:
         if named is None:
-            raise EventFileError(path, "no '% evt' or '% format' header line naming the EVT "
-                                 "encoding; pass format='evt2', 'evt21' or 'evt3'", offset=0)
+            raise EventFileError(
+                path,
+                "no '% evt' or '% format' header line naming the EVT "
+                "encoding; pass format='evt2', 'evt21' or 'evt3'",
+                offset=0,
+            )
         encoding = named
     elif named is not None and named != encoding:
         log.warning("%s: header says %s, reading as %s as asked", path, named, encoding)
@@ -276,12 +291,17 @@ def open_raw(path: Path, encoding: str | None = None, *, monotonic: bool = False
     width, height = geometry or (None, None)
     return EventStream(
         _decode_file(path, payload, ENCODINGS[encoding], width, height, monotonic),
-        path=path, format=encoding, width=width, height=height, size=path.stat().st_size,
+        path=path,
+        format=encoding,
+        width=width,
+        height=height,
+        size=path.stat().st_size,
     )
 
 
-def _decode_file(path: Path, payload: int, enc: Encoding, width: int | None,
-                 height: int | None, monotonic: bool) -> Iterator[Progressed]:
+def _decode_file(
+    path: Path, payload: int, enc: Encoding, width: int | None, height: int | None, monotonic: bool
+) -> Iterator[Progressed]:
     state = new_decoder_state(monotonic)
     limit_w, limit_h = width or COORD_LIMIT, height or COORD_LIMIT
     offset = payload
@@ -294,8 +314,9 @@ def _decode_file(path: Path, payload: int, enc: Encoding, width: int | None,
             while done < len(words):
                 size = min(CHUNK_EVENTS, (len(words) - done) * enc.max_events_per_word)
                 out = np.empty(size, EVENT_DTYPE)
-                n, used, err = enc.decode(words[done:], state, out["t"], out["x"], out["y"],
-                                          out["p"], limit_w, limit_h)
+                n, used, err = enc.decode(
+                    words[done:], state, out["t"], out["x"], out["y"], out["p"], limit_w, limit_h
+                )
                 done += used
                 position = offset + done * enc.word_bytes
                 if n:  # copy a mostly empty buffer rather than keep it alive
@@ -304,8 +325,11 @@ def _decode_file(path: Path, payload: int, enc: Encoding, width: int | None,
                     raise EventFileError(path, PROBLEMS[err], offset=position)
             offset += whole
             if whole < len(block):
-                raise EventFileError(path, f"file ends inside a {enc.word_bytes}-byte word "
-                                     "(truncated)", offset=offset)
+                raise EventFileError(
+                    path,
+                    f"file ends inside a {enc.word_bytes}-byte word (truncated)",
+                    offset=offset,
+                )
 
 
 # ---------------------------------------------------------------------------- encoding
@@ -370,13 +394,16 @@ def _encode_evt2(t, x, y, p, state, out):
 
 def _raw_header(evt: str, name: str, width: int, height: int) -> bytes:
     # Keys as OpenEB writes them (sorted), plus the legacy ones older readers need.
-    return write_header({
-        "camera_integrator_name": "Prophesee",
-        "evt": evt,
-        "format": f"{name};height={height};width={width}",
-        "geometry": f"{width}x{height}",
-        "plugin_integrator_name": "Prophesee",
-    }, end=True)
+    return write_header(
+        {
+            "camera_integrator_name": "Prophesee",
+            "evt": evt,
+            "format": f"{name};height={height};width={width}",
+            "geometry": f"{width}x{height}",
+            "plugin_integrator_name": "Prophesee",
+        },
+        end=True,
+    )
 
 
 def write_evt3(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: int) -> int:
@@ -392,15 +419,17 @@ def write_evt3(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: 
             done = 0
             while done < len(chunk):
                 rest = chunk[done:]
-                n, used, failed = _encode_evt3(rest["t"], rest["x"], rest["y"], rest["p"],
-                                               state, out)
+                n, used, failed = _encode_evt3(
+                    rest["t"], rest["x"], rest["y"], rest["p"], state, out
+                )
                 f.write(out[:n].tobytes())
                 done += used
                 if failed:
                     raise ValueError(
                         f"EVT3 cannot go back in time from {state[E_STEP] << 12} us to "
                         f"{rest['t'][used]} us (more than 8 s, or across a 16.8 s wrap); "
-                        "sort the events by time")
+                        "sort the events by time"
+                    )
             count += len(chunk)
     return count
 
@@ -423,5 +452,6 @@ def write_evt2(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: 
 
 def _check_geometry(width: int, height: int) -> None:
     if not (0 < width <= COORD_LIMIT and 0 < height <= COORD_LIMIT):
-        raise ValueError(f"EVT formats hold sensors up to {COORD_LIMIT}x{COORD_LIMIT}, "
-                         f"got {width}x{height}")
+        raise ValueError(
+            f"EVT formats hold sensors up to {COORD_LIMIT}x{COORD_LIMIT}, got {width}x{height}"
+        )

@@ -26,15 +26,30 @@ log = logging.getLogger(__name__)
 EVENT_ARRAY_TYPES = ("dvs_msgs/msg/EventArray", "prophesee_event_msgs/msg/EventArray")
 # ROS1 packs fields; ROS2's CDR aligns each field to its size, so elements after the first
 # start 2 bytes off a 4-byte boundary and carry 2 bytes of padding before ``ts``.
-ROS1_EVENT = np.dtype({"names": ["x", "y", "sec", "nsec", "p"],
-                       "formats": ["<u2", "<u2", "<u4", "<u4", "u1"],
-                       "offsets": [0, 2, 4, 8, 12], "itemsize": 13})
-CDR_FIRST_EVENT = np.dtype({"names": ["x", "y", "sec", "nsec", "p"],
-                            "formats": ["<u2", "<u2", "<i4", "<u4", "u1"],
-                            "offsets": [0, 2, 4, 8, 12], "itemsize": 14})
-CDR_EVENT = np.dtype({"names": ["x", "y", "sec", "nsec", "p"],
-                      "formats": ["<u2", "<u2", "<i4", "<u4", "u1"],
-                      "offsets": [0, 2, 6, 10, 14], "itemsize": 16})
+ROS1_EVENT = np.dtype(
+    {
+        "names": ["x", "y", "sec", "nsec", "p"],
+        "formats": ["<u2", "<u2", "<u4", "<u4", "u1"],
+        "offsets": [0, 2, 4, 8, 12],
+        "itemsize": 13,
+    }
+)
+CDR_FIRST_EVENT = np.dtype(
+    {
+        "names": ["x", "y", "sec", "nsec", "p"],
+        "formats": ["<u2", "<u2", "<i4", "<u4", "u1"],
+        "offsets": [0, 2, 4, 8, 12],
+        "itemsize": 14,
+    }
+)
+CDR_EVENT = np.dtype(
+    {
+        "names": ["x", "y", "sec", "nsec", "p"],
+        "formats": ["<u2", "<u2", "<i4", "<u4", "u1"],
+        "offsets": [0, 2, 6, 10, 14],
+        "itemsize": 16,
+    }
+)
 
 
 def _anyreader():
@@ -62,8 +77,14 @@ def open_rosbag(path: Path) -> EventStream:
             _, width, height = _parse(path, first[2], reader.is2, 0)
             width, height = (width, height) if width and height else (None, None)
         n_messages = sum(c.msgcount for c in connections)
-    return EventStream(_messages(path, width, height, n_messages), path=path, format="rosbag",
-                       width=width, height=height, size=_bag_size(path))
+    return EventStream(
+        _messages(path, width, height, n_messages),
+        path=path,
+        format="rosbag",
+        width=width,
+        height=height,
+        size=_bag_size(path),
+    )
 
 
 @contextmanager
@@ -84,8 +105,11 @@ def _event_connections(path: Path, reader) -> list:
     connections = [c for c in reader.connections if c.msgtype in EVENT_ARRAY_TYPES]
     if not connections:
         found = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
-        raise EventFileError(path, f"no event array topic ({', '.join(EVENT_ARRAY_TYPES)}); "
-                             f"topics: {found}", where="in the bag")
+        raise EventFileError(
+            path,
+            f"no event array topic ({', '.join(EVENT_ARRAY_TYPES)}); topics: {found}",
+            where="in the bag",
+        )
     topics = sorted({c.topic for c in connections})
     if len(topics) > 1:
         log.warning("%s: several event topics %s; reading %s", path, topics, topics[0])
@@ -122,8 +146,11 @@ def _parse(path: Path, raw: bytes, ros2: bool, index: int) -> tuple[np.ndarray, 
             pos += 12
             data = bytes(body[pos:]) + b"\0"  # the last element has no trailing padding
             first = np.frombuffer(data, CDR_FIRST_EVENT, count=min(n, 1))
-            rest = np.frombuffer(data, CDR_EVENT, count=n - 1,
-                                 offset=CDR_FIRST_EVENT.itemsize) if n > 1 else first[:0]
+            rest = (
+                np.frombuffer(data, CDR_EVENT, count=n - 1, offset=CDR_FIRST_EVENT.itemsize)
+                if n > 1
+                else first[:0]
+            )
             fields = np.concatenate([first.astype(CDR_EVENT), rest.astype(CDR_EVENT)])
         else:
             (frame_len,) = struct.unpack_from("<I", raw, 12)
@@ -131,8 +158,9 @@ def _parse(path: Path, raw: bytes, ros2: bool, index: int) -> tuple[np.ndarray, 
             height, width, n = struct.unpack_from("<III", raw, pos)
             fields = np.frombuffer(raw, ROS1_EVENT, count=n, offset=pos + 12)
     except (struct.error, ValueError) as e:
-        raise EventFileError(path, f"malformed EventArray message ({e})",
-                             where=f"in message {index}") from None
+        raise EventFileError(
+            path, f"malformed EventArray message ({e})", where=f"in message {index}"
+        ) from None
     events = np.empty(len(fields), EVENT_DTYPE)
     events["t"] = fields["sec"].astype(np.int64) * 1_000_000 + fields["nsec"] // 1000
     events["x"] = fields["x"]

@@ -27,8 +27,16 @@ class EventStream:
     source and drive progress bars.
     """
 
-    def __init__(self, chunks: Iterable[Progressed], *, path: Path, format: str,
-                 width: int | None, height: int | None, size: int) -> None:
+    def __init__(
+        self,
+        chunks: Iterable[Progressed],
+        *,
+        path: Path,
+        format: str,
+        width: int | None,
+        height: int | None,
+        size: int,
+    ) -> None:
         self.path = path
         self.format = format
         self.width = width
@@ -102,12 +110,16 @@ class EventChecker:
             return None
         ev = events[i]
         if ev["x"] >= self.width or ev["y"] >= self.height:
-            return i, (f"event at x={ev['x']}, y={ev['y']} is outside the "
-                       f"{self.width}x{self.height} sensor")
+            return i, (
+                f"event at x={ev['x']}, y={ev['y']} is outside the "
+                f"{self.width}x{self.height} sensor"
+            )
         if ev["t"] < 0:
             return i, f"negative timestamp {ev['t']} us"
-        return i, (f"time goes back from {running_max[i]} to {ev['t']} us, more than "
-                   f"{MAX_TIME_REVERSAL_US} us: not a real sensor's reordering")
+        return i, (
+            f"time goes back from {running_max[i]} to {ev['t']} us, more than "
+            f"{MAX_TIME_REVERSAL_US} us: not a real sensor's reordering"
+        )
 
 
 def as_event_chunks(chunks: np.ndarray | Iterable[np.ndarray]) -> Iterator[np.ndarray]:
@@ -128,18 +140,21 @@ def as_event_chunks(chunks: np.ndarray | Iterable[np.ndarray]) -> Iterator[np.nd
         yield chunk
 
 
-def check_writable(events: np.ndarray, *, format: str, width: int, height: int,
-                   max_t: int) -> None:
+def check_writable(events: np.ndarray, *, format: str, width: int, height: int, max_t: int) -> None:
     """Raise ``ValueError`` if ``events`` cannot be stored in ``format`` as they are."""
     if not len(events):
         return
     t = events["t"]
     if t.min() < 0:
-        raise ValueError(f"{format} cannot store negative timestamps (got {t.min()} us); "
-                         "shift the events to start at t >= 0")
+        raise ValueError(
+            f"{format} cannot store negative timestamps (got {t.min()} us); "
+            "shift the events to start at t >= 0"
+        )
     if t.max() > max_t:
-        raise ValueError(f"{format} stores timestamps up to {max_t} us, got {t.max()} us; "
-                         "shift the events closer to t = 0")
+        raise ValueError(
+            f"{format} stores timestamps up to {max_t} us, got {t.max()} us; "
+            "shift the events closer to t = 0"
+        )
     if events["x"].max() >= width or events["y"].max() >= height:
         raise ValueError(
             f"events reach x={events['x'].max()}, y={events['y'].max()}, outside the "

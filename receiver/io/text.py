@@ -45,12 +45,19 @@ def open_text(path: Path) -> EventStream:
             if line.strip():
                 seconds = any(c in line.split()[0] for c in b".eE")
                 break
-    return EventStream(_lines(path, seconds, width, height), path=path, format="text",
-                       width=width, height=height, size=path.stat().st_size)
+    return EventStream(
+        _lines(path, seconds, width, height),
+        path=path,
+        format="text",
+        width=width,
+        height=height,
+        size=path.stat().st_size,
+    )
 
 
-def _lines(path: Path, seconds: bool, width: int | None,
-           height: int | None) -> Iterator[Progressed]:
+def _lines(
+    path: Path, seconds: bool, width: int | None, height: int | None
+) -> Iterator[Progressed]:
     checker = EventChecker(width, height)
     offset = 0
     tail = b""
@@ -67,8 +74,9 @@ def _lines(path: Path, seconds: bool, width: int | None,
                     i, what = problem
                     if i:
                         yield events[:i], offset
-                    raise EventFileError(path, what, where=f"at event {i} of the block "
-                                         f"starting at byte {offset}")
+                    raise EventFileError(
+                        path, what, where=f"at event {i} of the block starting at byte {offset}"
+                    )
                 offset += len(block)
                 if len(events):
                     yield events, offset
@@ -77,25 +85,36 @@ def _lines(path: Path, seconds: bool, width: int | None,
 
 
 def _parse(path: Path, block: bytes, offset: int, seconds: bool) -> np.ndarray:
-    columns = np.dtype([("t", np.float64 if seconds else np.int64), ("x", np.int64),
-                        ("y", np.int64), ("p", np.int64)])
+    columns = np.dtype(
+        [
+            ("t", np.float64 if seconds else np.int64),
+            ("x", np.int64),
+            ("y", np.int64),
+            ("p", np.int64),
+        ]
+    )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "input contained no data" for comment-only blocks
-            rows = np.atleast_1d(np.loadtxt(io.BytesIO(block), dtype=columns, comments="#",
-                                            ndmin=1))
+            rows = np.atleast_1d(
+                np.loadtxt(io.BytesIO(block), dtype=columns, comments="#", ndmin=1)
+            )
     except ValueError as e:
-        raise EventFileError(path, f"not 't x y p' text ({e})",
-                             where=f"in the lines starting at byte {offset}") from None
+        raise EventFileError(
+            path, f"not 't x y p' text ({e})", where=f"in the lines starting at byte {offset}"
+        ) from None
     bad = (rows["x"] < 0) | (rows["x"] >= 1 << 16) | (rows["y"] < 0) | (rows["y"] >= 1 << 16)
     bad |= (rows["p"] < -1) | (rows["p"] > 1)
     if seconds:
         bad |= ~np.isfinite(rows["t"]) | (np.abs(rows["t"]) > MAX_T / 1e6)
     if bad.any():
         i = int(np.argmax(bad))
-        raise EventFileError(path, f"event {tuple(rows[i].tolist())} has a coordinate or "
-                             "polarity out of range (p must be 0, 1 or -1)",
-                             where=f"at line {i + 1} of the lines starting at byte {offset}")
+        raise EventFileError(
+            path,
+            f"event {tuple(rows[i].tolist())} has a coordinate or "
+            "polarity out of range (p must be 0, 1 or -1)",
+            where=f"at line {i + 1} of the lines starting at byte {offset}",
+        )
     events = np.empty(len(rows), EVENT_DTYPE)
     events["t"] = np.rint(rows["t"] * 1e6) if seconds else rows["t"]
     events["x"] = rows["x"]
@@ -115,8 +134,14 @@ def write_text(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: 
                 continue
             sec, us = np.divmod(chunk["t"], 1_000_000)
             lines = np.char.add(np.char.add(sec.astype(str), "."), np.char.zfill(us.astype(str), 6))
-            rows = np.column_stack([lines, chunk["x"].astype(str), chunk["y"].astype(str),
-                                    (chunk["p"] > 0).astype(int).astype(str)])
+            rows = np.column_stack(
+                [
+                    lines,
+                    chunk["x"].astype(str),
+                    chunk["y"].astype(str),
+                    (chunk["p"] > 0).astype(int).astype(str),
+                ]
+            )
             np.savetxt(f, rows, fmt="%s")
             count += len(chunk)
     return count

@@ -65,8 +65,18 @@ def blink_heatmap(
     last_pol = np.zeros((height, width), np.int8)
     last_flip = np.full((2, height, width), -1, np.int64)
     for ev in parts:
-        _triplet_heat(ev["t"], ev["x"], ev["y"], ev["p"], blink_hz, sigma_frac * blink_hz,
-                      heat, triplets, last_pol, last_flip)
+        _triplet_heat(
+            ev["t"],
+            ev["x"],
+            ev["y"],
+            ev["p"],
+            blink_hz,
+            sigma_frac * blink_hz,
+            heat,
+            triplets,
+            last_pol,
+            last_flip,
+        )
     return heat, triplets
 
 
@@ -183,7 +193,10 @@ def _pixel_harmonics(t, x, y, p, x0, y0, period_us, acc):
 
 
 def burst_image(
-    parts: list[np.ndarray], burst_us: float, period_us: float, mask: np.ndarray,
+    parts: list[np.ndarray],
+    burst_us: float,
+    period_us: float,
+    mask: np.ndarray,
     periods: int = 2,
 ) -> np.ndarray:
     """Boolean image of the pixels of ``mask`` that brighten in step with the bursts of the last
@@ -216,9 +229,7 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
     parts = [p for p in ([events] if isinstance(events, np.ndarray) else events) if len(p)]
     if sum(len(p) for p in parts) < 100:
         raise MarkerNotFound("temporal: almost no events in the detection window")
-    heat, triplets = blink_heatmap(
-        parts, cam.width, cam.height, config.blink_hz, params.sigma_frac
-    )
+    heat, triplets = blink_heatmap(parts, cam.width, cam.height, config.blink_hz, params.sigma_frac)
     hull = largest_region(heat, params.heat_threshold)
     mask = np.zeros((cam.height, cam.width), np.uint8)
     cv2.fillConvexPoly(mask, hull.astype(np.int32), 1)

@@ -91,8 +91,9 @@ def compensated_burst(
     flow = motion_flow(burst[burst["p"] < 0], tb, shape)
     on = [
         warped_counts(ev[ev["p"] > 0], tb, flow, shape)
-        for ev in (_select(parts, tb + d - half, tb + d + half) for d in (0, -period_us / 2,
-                                                                          period_us / 2))
+        for ev in (
+            _select(parts, tb + d - half, tb + d + half) for d in (0, -period_us / 2, period_us / 2)
+        )
     ]
     return on[0] - np.maximum(on[1], on[2]) >= 1, float(tb), flow
 

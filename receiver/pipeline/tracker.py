@@ -65,8 +65,25 @@ def _nearest_edge(xu, yu, a, b):
 
 @numba.njit(cache=True, nogil=True)
 def _assign(
-    xu, yu, t, start, a, b, gate, band, cap, sx, sy, st, sd, sum_d, n_valid, fit, due_us,
-    force_us, min_fill,
+    xu,
+    yu,
+    t,
+    start,
+    a,
+    b,
+    gate,
+    band,
+    cap,
+    sx,
+    sy,
+    st,
+    sd,
+    sum_d,
+    n_valid,
+    fit,
+    due_us,
+    force_us,
+    min_fill,
 ):
     """Add events ``start..`` to the clusters and count, in ``fit``, events in the band around
     the edges, those of them on an edge, and events on an edge since the last update. Stop after
@@ -178,9 +195,25 @@ class EdgeTracker:
             if np.any(on):
                 one = slice(e, e + 1)
                 _assign(
-                    ex[on], ey[on], et[on], 0, a[one], b[one], self._gate[one], self._band[one],
-                    cap[one], sx[one], sy[one], st[one], sd[one], self._slots[4][one],
-                    self._slots[5][one], unused, 1 << 62, 1 << 62, _MIN_FILL,
+                    ex[on],
+                    ey[on],
+                    et[on],
+                    0,
+                    a[one],
+                    b[one],
+                    self._gate[one],
+                    self._band[one],
+                    cap[one],
+                    sx[one],
+                    sy[one],
+                    st[one],
+                    sd[one],
+                    self._slots[4][one],
+                    self._slots[5][one],
+                    unused,
+                    1 << 62,
+                    1 << 62,
+                    _MIN_FILL,
                 )
 
     # --- start ---------------------------------------------------------------------------------
@@ -198,14 +231,17 @@ class EdgeTracker:
             ring_px = self._ring_px(a, b)
             gate = scale * ring_px if scale else self._gates(ring_px)
             near = dist <= gate[edge]
-            near &= (edge < 4) | (dist <= _LOCATOR_GAP * ring_px[edge]) | ~self._inside(
-                xu, yu, a, b, edge
+            near &= (
+                (edge < 4)
+                | (dist <= _LOCATOR_GAP * ring_px[edge])
+                | ~self._inside(xu, yu, a, b, edge)
             )
             if np.count_nonzero(near) < _CAPTURE_MIN_EVENTS or len(np.unique(edge[near])) < 4:
                 return False
             pts = np.stack([xu[near], yu[near]], 1)
-            T, _ = refine_pose(T, self.K, pts, edge[near], self.edges_world, q.huber_px,
-                               q.max_iterations)
+            T, _ = refine_pose(
+                T, self.K, pts, edge[near], self.edges_world, q.huber_px, q.max_iterations
+            )
         self.T_cam_world = T
         self._slots = None  # clusters of the old pose are meaningless
         self._rebin(T, now_us)
@@ -229,8 +265,22 @@ class EdgeTracker:
         while start < len(t):
             sx, sy, st, sd, sum_d, n_valid = self._slots
             stop, due = _assign(
-                xu, yu, t, start, self._a, self._b, self._gate, self._band, self._cap,
-                sx, sy, st, sd, sum_d, n_valid, self._fit,
+                xu,
+                yu,
+                t,
+                start,
+                self._a,
+                self._b,
+                self._gate,
+                self._band,
+                self._cap,
+                sx,
+                sy,
+                st,
+                sd,
+                sum_d,
+                n_valid,
+                self._fit,
                 self.last_update_us + q.min_update_interval_us,
                 self.last_update_us + q.max_update_interval_us,
                 _MIN_FILL,

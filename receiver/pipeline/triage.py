@@ -135,8 +135,15 @@ class EventTriage:
             self.epoch_us += shift
         return EventColumns(
             *_triage(
-                events["t"], events["x"], events["y"], events["p"], self.surface, self.epoch_us,
-                self.gap_us, self._tiles, self._table,
+                events["t"],
+                events["x"],
+                events["y"],
+                events["p"],
+                self.surface,
+                self.epoch_us,
+                self.gap_us,
+                self._tiles,
+                self._table,
             )
         )
 
@@ -153,8 +160,15 @@ class EventTriage:
         hi = np.ceil((np.maximum(a, b).max(axis=0) + reach) / TILE).astype(int) + 3
         ty, tx = self._tiles.shape
         _mark_tiles(
-            self._tiles, self._table, a, b, reach,
-            max(lo[0], 0), min(hi[0], tx), max(lo[1], 0), min(hi[1], ty),
+            self._tiles,
+            self._table,
+            a,
+            b,
+            reach,
+            max(lo[0], 0),
+            min(hi[0], tx),
+            max(lo[1], 0),
+            min(hi[1], ty),
         )
 
     def bursts(self, t0: int, t1: int, box: tuple[int, int, int, int]) -> EventColumns:

@@ -64,11 +64,13 @@ class Display:
         if not 0.0 < self.scanout_fraction <= 1.0:
             raise ValueError(f"scanout_fraction must be in (0, 1], got {self.scanout_fraction}")
         if self.rise_ms < 0 or self.fall_ms < 0:
-            raise ValueError(f"rise/fall time constants must be >= 0 ms, got {self.rise_ms}, "
-                             f"{self.fall_ms}")
+            raise ValueError(
+                f"rise/fall time constants must be >= 0 ms, got {self.rise_ms}, {self.fall_ms}"
+            )
         if not 0.0 < self.black_nits < self.peak_nits:
-            raise ValueError(f"need 0 < black_nits < peak_nits, got {self.black_nits}, "
-                             f"{self.peak_nits}")
+            raise ValueError(
+                f"need 0 < black_nits < peak_nits, got {self.black_nits}, {self.peak_nits}"
+            )
         if self.pwm_hz is not None and self.pwm_hz <= 0:
             raise ValueError(f"pwm_hz must be positive or None, got {self.pwm_hz}")
         if not 0.0 < self.pwm_duty <= 1.0:
@@ -80,8 +82,14 @@ class Display:
     def oled(cls, refresh_hz: float = 60.0, pwm_hz: float | None = 240.0) -> Display:
         """A phone-style OLED: microsecond switching, deep blacks, PWM dimming (240 Hz is common
         on phones below full brightness)."""
-        return cls(refresh_hz=refresh_hz, rise_ms=0.0, fall_ms=0.0, black_nits=0.01,
-                   peak_nits=400.0, pwm_hz=pwm_hz)
+        return cls(
+            refresh_hz=refresh_hz,
+            rise_ms=0.0,
+            fall_ms=0.0,
+            black_nits=0.01,
+            peak_nits=400.0,
+            pwm_hz=pwm_hz,
+        )
 
     @property
     def period_us(self) -> float:
@@ -127,8 +135,9 @@ class ScreenLayout:
         cell = geometry.cell_size_m(marker_size_m)
         outer = geometry.side * cell
         margin = display.margin * outer
-        return cls(cell, geometry.ring, geometry.side, -geometry.ring * cell - margin,
-                   outer + 2 * margin)
+        return cls(
+            cell, geometry.ring, geometry.side, -geometry.ring * cell - margin, outer + 2 * margin
+        )
 
     @property
     def marker_top_fraction(self) -> float:
@@ -145,8 +154,9 @@ class ScreenLayout:
         return np.array([[lo, lo, 0.0], [hi, lo, 0.0], [hi, hi, 0.0], [lo, hi, 0.0]])
 
 
-def settle(start: np.ndarray, target: np.ndarray, elapsed_us: float, display: Display
-           ) -> np.ndarray:
+def settle(
+    start: np.ndarray, target: np.ndarray, elapsed_us: float, display: Display
+) -> np.ndarray:
     """Emitted luminance ``elapsed_us`` after a switch from ``start`` towards ``target``."""
     tau = np.where(target > start, display.rise_ms, display.fall_ms) * 1e3
     with np.errstate(divide="ignore"):
@@ -206,10 +216,15 @@ class DisplayTimeline:
         last = max(self._states)
         for k in range(last + 1, k_hi + 1):
             target, at_switch = self._states[k - 1]
-            self._states[k] = (self.target(k), settle(at_switch, target, self.display.period_us,
-                                                      self.display))
+            self._states[k] = (
+                self.target(k),
+                settle(at_switch, target, self.display.period_us, self.display),
+            )
         for k in [k for k in self._states if k < k_lo]:
             del self._states[k]
         ks = range(k_lo, k_hi + 1)
-        return TimelineWindow(k_lo, np.stack([self._states[k][0] for k in ks]),
-                              np.stack([self._states[k][1] for k in ks]))
+        return TimelineWindow(
+            k_lo,
+            np.stack([self._states[k][0] for k in ks]),
+            np.stack([self._states[k][1] for k in ks]),
+        )

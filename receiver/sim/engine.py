@@ -33,8 +33,10 @@ class Recording:
         self.trajectory = scene.motion.trajectory(scene.rig)
         limit = getattr(self.trajectory, "duration_us", None)
         if limit is not None and duration_us > limit:
-            raise ValueError(f"the trajectory lasts {limit / 1e6:.3f} s, shorter than the "
-                             f"requested {duration_us / 1e6:.3f} s")
+            raise ValueError(
+                f"the trajectory lasts {limit / 1e6:.3f} s, shorter than the "
+                f"requested {duration_us / 1e6:.3f} s"
+            )
 
     @property
     def width(self) -> int:
@@ -69,7 +71,8 @@ def simulate(scene: Scene, duration_s: float, chunk_us: int = 10_000) -> Recordi
 def _run(rec: Recording) -> Iterator[np.ndarray]:
     scene, sensor, cam = rec.scene, rec.scene.sensor, rec.scene.camera
     rng_pixels, rng_noise, rng_delay = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(scene.seed).spawn(3))
+        np.random.default_rng(s) for s in np.random.SeedSequence(scene.seed).spawn(3)
+    )
     pixels = PixelArray.draw(sensor, cam.width * cam.height, rng_pixels)
     timeline = DisplayTimeline(scene.encoder, scene.display, scene.start_refresh)
     renderer = _renderer(scene, rec, timeline, pixels)
@@ -97,8 +100,16 @@ def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: P
     pix_index = _pixels_near_marker(scene, T)
     rays = sample_rays(cam, scene.optics, pix_index % cam.width, pix_index // cam.width)
     points = rays_to_plane(rays, T)
-    return StaticRenderer(pix_index, points, scene.layout, timeline, scene.radiometry,
-                          pixels.threshold_on, pixels.threshold_off, sensor.refractory_us)
+    return StaticRenderer(
+        pix_index,
+        points,
+        scene.layout,
+        timeline,
+        scene.radiometry,
+        pixels.threshold_on,
+        pixels.threshold_off,
+        sensor.refractory_us,
+    )
 
 
 def _pixels_near_marker(scene: Scene, T_world_cam: np.ndarray) -> np.ndarray:
@@ -112,7 +123,10 @@ def _pixels_near_marker(scene: Scene, T_world_cam: np.ndarray) -> np.ndarray:
     lo = scene.rig.corners[0, 0] - margin
     hi = scene.rig.corners[2, 0] + margin
     with np.errstate(invalid="ignore"):
-        near = ((centre[:, 0] >= lo) & (centre[:, 0] <= hi)
-                & (centre[:, 1] >= lo) & (centre[:, 1] <= hi))
+        near = (
+            (centre[:, 0] >= lo)
+            & (centre[:, 0] <= hi)
+            & (centre[:, 1] >= lo)
+            & (centre[:, 1] <= hi)
+        )
     return ys[near] * cam.width + xs[near]
-

@@ -42,8 +42,9 @@ def look_at(centre: np.ndarray, distance_m, tilt_deg, elevation_deg, roll_deg) -
     """T_world_cam of a camera ``distance_m`` from ``centre`` looking at it, swung
     ``tilt_deg`` about the marker's vertical axis and ``elevation_deg`` about its horizontal
     one, rolled ``roll_deg`` about its optical axis. Scalars give (4, 4), arrays (n, 4, 4)."""
-    args = np.broadcast_arrays(*(np.asarray(a, float) for a in
-                                 (distance_m, tilt_deg, elevation_deg, roll_deg)))
+    args = np.broadcast_arrays(
+        *(np.asarray(a, float) for a in (distance_m, tilt_deg, elevation_deg, roll_deg))
+    )
     distance, tilt, elevation, roll = (a.ravel() for a in args)
     # Unrotated camera axes in the world: x right, y down, z into the screen.
     orbit = Rotation.from_euler("yx", np.column_stack([-tilt, elevation]), degrees=True)
@@ -112,8 +113,10 @@ class HandHeldMotion:
         if self.distance_m <= 0:
             raise ValueError(f"distance must be positive, got {self.distance_m} m")
         if self.flow_px_per_ms <= 0:
-            raise ValueError(f"flow must be positive, got {self.flow_px_per_ms} px/ms "
-                             "(use StaticMotion for a still camera)")
+            raise ValueError(
+                f"flow must be positive, got {self.flow_px_per_ms} px/ms "
+                "(use StaticMotion for a still camera)"
+            )
 
     def trajectory(self, rig: Rig) -> Trajectory:
         return _Wander(self, rig)
@@ -139,9 +142,11 @@ class _Wander:
         marker_px = self._marker_extent_px(self._base_poses(np.zeros(1))[0])
         free_px = (min(cam.width, cam.height) - marker_px) / 2
         if free_px <= 0:
-            raise ValueError(f"the marker ({marker_px:.0f} px) does not fit in the "
-                             f"{cam.width}x{cam.height} image at {motion.distance_m} m; "
-                             "move the camera further away")
+            raise ValueError(
+                f"the marker ({marker_px:.0f} px) does not fit in the "
+                f"{cam.width}x{cam.height} image at {motion.distance_m} m; "
+                "move the camera further away"
+            )
         self._shift_m = _SHIFT_FRACTION * free_px * motion.distance_m / cam.K[0, 0]
         probe = np.linspace(0, _FLOW_PROBE_S * 1e6, 4001)
         self._speed = motion.flow_px_per_ms / self.mean_flow_px_per_ms(probe)
@@ -155,8 +160,13 @@ class _Wander:
     def _base_poses(self, t_us: np.ndarray) -> np.ndarray:
         s = self._signals(t_us)
         m = self.motion
-        return look_at(self.rig.centre, m.distance_m * (1 + _DEPTH_FRACTION * s[3]),
-                       _ORBIT_DEG * s[0], _ORBIT_DEG * s[1], _ROLL_DEG * s[2])
+        return look_at(
+            self.rig.centre,
+            m.distance_m * (1 + _DEPTH_FRACTION * s[3]),
+            _ORBIT_DEG * s[0],
+            _ORBIT_DEG * s[1],
+            _ROLL_DEG * s[2],
+        )
 
     def pose_at(self, t_us: np.ndarray) -> np.ndarray:
         T = self._base_poses(t_us)
@@ -224,16 +234,18 @@ def motion_from_dict(d: dict) -> Motion:
     return kinds[kind](**d)
 
 
-def project_points(camera: CameraModel, T_world_cam: np.ndarray, points_world: np.ndarray
-                   ) -> np.ndarray:
+def project_points(
+    camera: CameraModel, T_world_cam: np.ndarray, points_world: np.ndarray
+) -> np.ndarray:
     """Pixel coordinates (..., n, 2) of world points (n, 3) seen from T_world_cam (..., 4, 4)."""
     T = invert(np.asarray(T_world_cam))
     cam = np.einsum("...ij,nj->...ni", T[..., :3, :3], points_world) + T[..., None, :3, 3]
     return camera.project(cam)
 
 
-def image_box(camera: CameraModel, T_world_cam: np.ndarray, points_world: np.ndarray,
-              margin_px: float) -> tuple[int, int, int, int]:
+def image_box(
+    camera: CameraModel, T_world_cam: np.ndarray, points_world: np.ndarray, margin_px: float
+) -> tuple[int, int, int, int]:
     """Pixel box ``(x0, x1, y0, y1)`` (clipped to the sensor, ends exclusive) around the images
     of world points seen from one or more poses; the whole sensor if a point is behind a camera
     (its projection would then be meaningless)."""

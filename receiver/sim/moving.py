@@ -139,8 +139,33 @@ def _region_under(rx, ry, R, C, geo):
 
 
 @numba.njit(cache=True)
-def _cell_run(ta, tb, c, i, rx, ry, t_steps, Rs, Cs, geo, disp, rad, k_first, target,
-              at_switch, level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n):
+def _cell_run(
+    ta,
+    tb,
+    c,
+    i,
+    rx,
+    ry,
+    t_steps,
+    Rs,
+    Cs,
+    geo,
+    disp,
+    rad,
+    k_first,
+    target,
+    at_switch,
+    level,
+    ref,
+    last,
+    c_on,
+    c_off,
+    refractory,
+    out_t,
+    out_i,
+    out_p,
+    n,
+):
     """Events of pixel ``i`` (centre ray (rx, ry)) over [ta, tb] while its whole footprint sees
     cell ``c``: per refresh, a jump at the switch and an exponential after it, both exact. The
     switch reaches the pixel when the scan-out reaches the screen row under its centre."""
@@ -166,8 +191,29 @@ def _cell_run(ta, tb, c, i, rx, ry, t_steps, Rs, Cs, geo, disp, rad, k_first, ta
         tau = tau_rise if end > begin else tau_fall
         b = begin - end if tau > 0.0 else 0.0
         ub = min(tb - ts, period)
-        n = render_segment(ts, max(ta - ts, 0.0), ub, base + end, base, b, tau, 0.0, tau, _NO_PWM,
-                           i, level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n)
+        n = render_segment(
+            ts,
+            max(ta - ts, 0.0),
+            ub,
+            base + end,
+            base,
+            b,
+            tau,
+            0.0,
+            tau,
+            _NO_PWM,
+            i,
+            level,
+            ref,
+            last,
+            c_on,
+            c_off,
+            refractory,
+            out_t,
+            out_i,
+            out_p,
+            n,
+        )
         k += 1
     return n
 
@@ -187,9 +233,33 @@ def _row_fraction(t, rx, ry, t_steps, dt, Rs, Cs, top, screen):
 
 
 @numba.njit(cache=True)
-def _sampled_step(ta, tb, i, p0, p1, geo, disp, rad, k_first, target, at_switch, tau_fast,
-                  tau_slow, times, seen, level, ref, last, c_on, c_off, refractory, out_t, out_i,
-                  out_p, n):
+def _sampled_step(
+    ta,
+    tb,
+    i,
+    p0,
+    p1,
+    geo,
+    disp,
+    rad,
+    k_first,
+    target,
+    at_switch,
+    tau_fast,
+    tau_slow,
+    times,
+    seen,
+    level,
+    ref,
+    last,
+    c_on,
+    c_off,
+    refractory,
+    out_t,
+    out_i,
+    out_p,
+    n,
+):
     """Events of pixel ``i`` over the sub-step [ta, tb] from its footprint samples at both ends
     (``p0``, ``p1``), adding samples at the display switches of its cells."""
     start, period, scan = disp[0], disp[1], disp[2]
@@ -226,10 +296,12 @@ def _sampled_step(ta, tb, i, p0, p1, geo, disp, rad, k_first, target, at_switch,
         t = times[r] if r < m else tb
         if t <= t_prev and r < m:
             continue
-        lt = _log_irradiance((t - ta) / (tb - ta), t, p0, p1, geo, disp, rad, k_first,
-                             target, at_switch, seen)
-        n = cross_linear(t_prev, l_prev, t, lt, i, ref, last, c_on, c_off, refractory,
-                         out_t, out_i, out_p, n)
+        lt = _log_irradiance(
+            (t - ta) / (tb - ta), t, p0, p1, geo, disp, rad, k_first, target, at_switch, seen
+        )
+        n = cross_linear(
+            t_prev, l_prev, t, lt, i, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
+        )
         t_prev, l_prev = t, lt
     level[i] = l_prev
     return n
@@ -251,16 +323,41 @@ def _common_region(p0, p1, geo):
     """The region all footprint samples lie on at both ends of a sub-step, or -3 if several."""
     first = region_of(p0[0, 0], p0[0, 1], geo)
     for q in range(p0.shape[0]):
-        if (region_of(p0[q, 0], p0[q, 1], geo) != first
-                or region_of(p1[q, 0], p1[q, 1], geo) != first):
+        if (
+            region_of(p0[q, 0], p0[q, 1], geo) != first
+            or region_of(p1[q, 0], p1[q, 1], geo) != first
+        ):
             return -3
     return first
 
 
 @numba.njit(cache=True)
-def _moving_window(t_steps, Rs, Cs, box, j_start, reach_m, step_m, rays, offsets, geo, disp,
-                   rad, k_first, target, at_switch, level, ref, last, c_on, c_off, refractory,
-                   out_t, out_i, out_p):
+def _moving_window(
+    t_steps,
+    Rs,
+    Cs,
+    box,
+    j_start,
+    reach_m,
+    step_m,
+    rays,
+    offsets,
+    geo,
+    disp,
+    rad,
+    k_first,
+    target,
+    at_switch,
+    level,
+    ref,
+    last,
+    c_on,
+    c_off,
+    refractory,
+    out_t,
+    out_i,
+    out_p,
+):
     """Events of the pixels ``j_start ..`` of ``box`` (x0, x1, y0, y1) over the sub-steps
     ``t_steps`` (poses ``Rs``, ``Cs``). ``reach_m`` bounds the distance on the marker plane from
     a pixel's centre point to its footprint samples, ``step_m`` how far that point moves in one
@@ -293,9 +390,33 @@ def _moving_window(t_steps, Rs, Cs, box, j_start, reach_m, step_m, rays, offsets
             if safe >= 1:  # the footprint stays on one region for ``safe`` sub-steps
                 end = min(step + safe, m)
                 if region >= 0:
-                    n = _cell_run(t_steps[step], t_steps[end], region, i, rx, ry, t_steps, Rs,
-                                  Cs, geo, disp, rad, k_first, target, at_switch, level, ref,
-                                  last, c_on, c_off, refractory, out_t, out_i, out_p, n)
+                    n = _cell_run(
+                        t_steps[step],
+                        t_steps[end],
+                        region,
+                        i,
+                        rx,
+                        ry,
+                        t_steps,
+                        Rs,
+                        Cs,
+                        geo,
+                        disp,
+                        rad,
+                        k_first,
+                        target,
+                        at_switch,
+                        level,
+                        ref,
+                        last,
+                        c_on,
+                        c_off,
+                        refractory,
+                        out_t,
+                        out_i,
+                        out_p,
+                        n,
+                    )
                 step = end
                 if step < m:
                     region, room = _region_under(rx, ry, Rs[step], Cs[step], geo)
@@ -305,9 +426,33 @@ def _moving_window(t_steps, Rs, Cs, box, j_start, reach_m, step_m, rays, offsets
             region_b, room_b = _region_under(rx, ry, Rs[step + 1], Cs[step + 1], geo)
             if region_b == region and min(room, room_b) > reach_m:
                 if region >= 0:
-                    n = _cell_run(t_steps[step], t_steps[step + 1], region, i, rx, ry, t_steps,
-                                  Rs, Cs, geo, disp, rad, k_first, target, at_switch, level, ref,
-                                  last, c_on, c_off, refractory, out_t, out_i, out_p, n)
+                    n = _cell_run(
+                        t_steps[step],
+                        t_steps[step + 1],
+                        region,
+                        i,
+                        rx,
+                        ry,
+                        t_steps,
+                        Rs,
+                        Cs,
+                        geo,
+                        disp,
+                        rad,
+                        k_first,
+                        target,
+                        at_switch,
+                        level,
+                        ref,
+                        last,
+                        c_on,
+                        c_off,
+                        refractory,
+                        out_t,
+                        out_i,
+                        out_p,
+                        n,
+                    )
                 step += 1
                 room = room_b
                 continue
@@ -315,20 +460,69 @@ def _moving_window(t_steps, Rs, Cs, box, j_start, reach_m, step_m, rays, offsets
                 if sampled_up_to == step:  # the previous sub-step ended where this one starts
                     p0[q, 0], p0[q, 1] = p1[q, 0], p1[q, 1]
                 else:
-                    p0[q, 0], p0[q, 1] = plane_point(rx + offsets[q, 0], ry + offsets[q, 1],
-                                                Rs[step], Cs[step])
-                p1[q, 0], p1[q, 1] = plane_point(rx + offsets[q, 0], ry + offsets[q, 1],
-                                            Rs[step + 1], Cs[step + 1])
+                    p0[q, 0], p0[q, 1] = plane_point(
+                        rx + offsets[q, 0], ry + offsets[q, 1], Rs[step], Cs[step]
+                    )
+                p1[q, 0], p1[q, 1] = plane_point(
+                    rx + offsets[q, 0], ry + offsets[q, 1], Rs[step + 1], Cs[step + 1]
+                )
             region = _common_region(p0, p1, geo)
             if region >= 0:  # on one cell after all: its light alone, in closed form
-                n = _cell_run(t_steps[step], t_steps[step + 1], region, i, rx, ry, t_steps, Rs,
-                              Cs, geo, disp, rad, k_first, target, at_switch, level, ref, last,
-                              c_on, c_off, refractory, out_t, out_i, out_p, n)
+                n = _cell_run(
+                    t_steps[step],
+                    t_steps[step + 1],
+                    region,
+                    i,
+                    rx,
+                    ry,
+                    t_steps,
+                    Rs,
+                    Cs,
+                    geo,
+                    disp,
+                    rad,
+                    k_first,
+                    target,
+                    at_switch,
+                    level,
+                    ref,
+                    last,
+                    c_on,
+                    c_off,
+                    refractory,
+                    out_t,
+                    out_i,
+                    out_p,
+                    n,
+                )
             elif region == -3:
-                n = _sampled_step(t_steps[step], t_steps[step + 1], i, p0, p1, geo, disp, rad,
-                                  k_first, target, at_switch, tau_fast, tau_slow, times, seen,
-                                  level, ref, last, c_on, c_off, refractory, out_t, out_i,
-                                  out_p, n)
+                n = _sampled_step(
+                    t_steps[step],
+                    t_steps[step + 1],
+                    i,
+                    p0,
+                    p1,
+                    geo,
+                    disp,
+                    rad,
+                    k_first,
+                    target,
+                    at_switch,
+                    tau_fast,
+                    tau_slow,
+                    times,
+                    seen,
+                    level,
+                    ref,
+                    last,
+                    c_on,
+                    c_off,
+                    refractory,
+                    out_t,
+                    out_i,
+                    out_p,
+                    n,
+                )
             step += 1
             sampled_up_to = step
             region, room = region_b, room_b
@@ -348,15 +542,18 @@ def _fill_levels(t, R, C, rays, offsets, geo, disp, rad, k_first, target, at_swi
     for y in range(h):
         for x in range(w):
             for q in range(s):
-                p[q, 0], p[q, 1] = plane_point(rays[y, x, 0] + offsets[q, 0],
-                                          rays[y, x, 1] + offsets[q, 1], R, C)
-            level[y * w + x] = _log_irradiance(0.0, t, p, p, geo, disp, rad, k_first, target,
-                                               at_switch, seen)
+                p[q, 0], p[q, 1] = plane_point(
+                    rays[y, x, 0] + offsets[q, 0], rays[y, x, 1] + offsets[q, 1], R, C
+                )
+            level[y * w + x] = _log_irradiance(
+                0.0, t, p, p, geo, disp, rad, k_first, target, at_switch, seen
+            )
 
 
 class MovingRenderer:
-    def __init__(self, scene, trajectory: Trajectory, timeline: DisplayTimeline,
-                 pixels: PixelArray) -> None:
+    def __init__(
+        self, scene, trajectory: Trajectory, timeline: DisplayTimeline, pixels: PixelArray
+    ) -> None:
         cam = scene.camera
         self.camera, self.trajectory, self.timeline = cam, trajectory, timeline
         ys, xs = np.divmod(np.arange(cam.width * cam.height), cam.width)
@@ -365,10 +562,17 @@ class MovingRenderer:
         lay, rad, d = scene.layout, scene.radiometry, timeline.display
         self.geo = plane_geometry(lay)
         if d.pwm_hz is not None:
-            raise ValueError("backlight PWM is simulated for still cameras only; give the "
-                             "display pwm_hz=None to simulate a moving camera")
-        self.disp = (float(timeline.start_refresh), d.period_us, d.scan_us, d.rise_ms * 1e3,
-                     d.fall_ms * 1e3)
+            raise ValueError(
+                "backlight PWM is simulated for still cameras only; give the "
+                "display pwm_hz=None to simulate a moving camera"
+            )
+        self.disp = (
+            float(timeline.start_refresh),
+            d.period_us,
+            d.scan_us,
+            d.rise_ms * 1e3,
+            d.fall_ms * 1e3,
+        )
         self.rad = (rad.screen_ambient, rad.screen_black, rad.wall, rad.dark)
         self.outline = lay.screen_corners()
         self.c_on, self.c_off = pixels.threshold_on, pixels.threshold_off
@@ -377,8 +581,20 @@ class MovingRenderer:
         self.level = np.empty(cam.width * cam.height)
         T0 = trajectory.pose_at(np.zeros(1))[0]
         win = timeline.window(timeline.start_refresh - 1, timeline.start_refresh)
-        _fill_levels(0.0, T0[:3, :3], T0[:3, 3], self.rays, self.offsets, self.geo, self.disp,
-                     self.rad, win.k_first, win.target, win.at_switch, self.level)
+        _fill_levels(
+            0.0,
+            T0[:3, :3],
+            T0[:3, 3],
+            self.rays,
+            self.offsets,
+            self.geo,
+            self.disp,
+            self.rad,
+            win.k_first,
+            win.target,
+            win.at_switch,
+            self.level,
+        )
         self.ref = self.level.copy()
         self.last = np.full(cam.width * cam.height, -np.inf)
         self._out = EventBuffer()
@@ -409,9 +625,31 @@ class MovingRenderer:
         while j < total:
             out_t, out_i, out_p = self._out.get()
             j_next, n = _moving_window(
-                t_steps, Rs, Cs, box, j, reach_m, step_m, self.rays, self.offsets, self.geo,
-                self.disp, self.rad, win.k_first, win.target, win.at_switch, self.level,
-                self.ref, self.last, self.c_on, self.c_off, self.refractory, out_t, out_i, out_p)
+                t_steps,
+                Rs,
+                Cs,
+                box,
+                j,
+                reach_m,
+                step_m,
+                self.rays,
+                self.offsets,
+                self.geo,
+                self.disp,
+                self.rad,
+                win.k_first,
+                win.target,
+                win.at_switch,
+                self.level,
+                self.ref,
+                self.last,
+                self.c_on,
+                self.c_off,
+                self.refractory,
+                out_t,
+                out_i,
+                out_p,
+            )
             parts.append((out_t[:n].copy(), out_i[:n].copy(), out_p[:n].copy()))
             if j_next < total:
                 self._out.grow()
@@ -434,8 +672,9 @@ class MovingRenderer:
             centre = rays_to_plane(rays, Ti)
             for shift in np.eye(2):
                 moved = rays_to_plane(rays + shift / K[[0, 1], [0, 1]], Ti)
-                m_per_px = max(m_per_px, float(np.nanmax(
-                    np.linalg.norm(moved - centre, axis=1), initial=0.0)))
+                m_per_px = max(
+                    m_per_px, float(np.nanmax(np.linalg.norm(moved - centre, axis=1), initial=0.0))
+                )
         if not m_per_px > 0:  # the screen is (partly) behind the camera: sample every pixel
             return math.inf, 1.0
         reach_px = float(np.linalg.norm(self.offsets * K[[0, 1], [0, 1]], axis=1).max())

@@ -22,8 +22,14 @@ from receiver.poses import write_tum
 from receiver.sim.engine import Recording
 
 
-def write_recording(rec: Recording, out_dir: str | Path, *, events_name: str = "events.raw",
-                    pose_hz: float = 1000.0, progress: bool = True) -> dict:
+def write_recording(
+    rec: Recording,
+    out_dir: str | Path,
+    *,
+    events_name: str = "events.raw",
+    pose_hz: float = 1000.0,
+    progress: bool = True,
+) -> dict:
     """Run ``rec`` and write it under ``out_dir``; returns a summary (paths, event count)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -48,17 +54,30 @@ def _write_frames(rec: Recording, path: Path) -> None:
     is_data = np.array([enc.is_data_frame(int(k)) for k in refresh], dtype=bool)
     data = refresh[is_data]
     n = enc.geometry.cells
-    bits = (np.stack([enc.payload_bits(int(k)) for k in data]) if len(data)
-            else np.zeros((0, n, n), np.uint8))
-    np.savez_compressed(path, refresh=refresh, time_us=rec.refresh_times_us(k0, k1),
-                        is_data=is_data, data_refresh=data, payload_bits=bits)
+    bits = (
+        np.stack([enc.payload_bits(int(k)) for k in data])
+        if len(data)
+        else np.zeros((0, n, n), np.uint8)
+    )
+    np.savez_compressed(
+        path,
+        refresh=refresh,
+        time_us=rec.refresh_times_us(k0, k1),
+        is_data=is_data,
+        data_refresh=data,
+        payload_bits=bits,
+    )
 
 
 def _with_progress(rec: Recording) -> Iterable[np.ndarray]:
     from tqdm import tqdm
 
-    with tqdm(total=rec.duration_us / 1e6, unit="sim s", desc="simulate",
-              bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}<{remaining}]") as bar:
+    with tqdm(
+        total=rec.duration_us / 1e6,
+        unit="sim s",
+        desc="simulate",
+        bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}<{remaining}]",
+    ) as bar:
         for chunk in rec:
             bar.update(rec.chunk_us / 1e6)
             yield chunk

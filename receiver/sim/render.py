@@ -49,8 +49,13 @@ class Radiometry:
 
 def plane_geometry(layout: ScreenLayout) -> tuple[float, float, float, float, float]:
     """The layout as the kernels take it: (cell_m, ring, side, screen_top_m, screen_side_m)."""
-    return (layout.cell_m, float(layout.ring), float(layout.side), layout.screen_top_m,
-            layout.screen_side_m)
+    return (
+        layout.cell_m,
+        float(layout.ring),
+        float(layout.side),
+        layout.screen_top_m,
+        layout.screen_side_m,
+    )
 
 
 @numba.njit(cache=True, inline="always")
@@ -123,9 +128,34 @@ def _group_cells(region: np.ndarray):
 
 
 @numba.njit(cache=True)
-def _static_window(t1, j_start, pix_v, pix_const, ptr, cells, weights, k_first, target,
-                   at_switch, start_refresh, period, scan, tau_rise, tau_fall, pwm, next_switch,
-                   level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p):
+def _static_window(
+    t1,
+    j_start,
+    pix_v,
+    pix_const,
+    ptr,
+    cells,
+    weights,
+    k_first,
+    target,
+    at_switch,
+    start_refresh,
+    period,
+    scan,
+    tau_rise,
+    tau_fall,
+    pwm,
+    next_switch,
+    level,
+    ref,
+    last,
+    c_on,
+    c_off,
+    refractory,
+    out_t,
+    out_i,
+    out_p,
+):
     """Events of the still-camera pixels ``j_start ..`` from their next display switch on, one
     whole refresh at a time, for every switch before ``t1`` (events may run up to a refresh
     period past ``t1``: the caller holds them back). Returns (next pixel, count): stops early,
@@ -157,9 +187,29 @@ def _static_window(t1, j_start, pix_v, pix_const, ptr, cells, weights, k_first, 
                         b_rise += w * (lum_start - lum_end)
                 elif tau_fall > 0:
                     b_fall += w * (lum_start - lum_end)
-            n = render_segment(ts, 0.0, period, a, pix_const[j], b_rise, tau_rise, b_fall,
-                               tau_fall, pwm, j, level, ref, last, c_on, c_off, refractory,
-                               out_t, out_i, out_p, n)
+            n = render_segment(
+                ts,
+                0.0,
+                period,
+                a,
+                pix_const[j],
+                b_rise,
+                tau_rise,
+                b_fall,
+                tau_fall,
+                pwm,
+                j,
+                level,
+                ref,
+                last,
+                c_on,
+                c_off,
+                refractory,
+                out_t,
+                out_i,
+                out_p,
+                n,
+            )
             next_switch[j] = ts + period
         if n > out_t.shape[0]:
             ref[j], last[j], level[j], next_switch[j] = saved
@@ -178,16 +228,56 @@ def backlight(t, pwm):
 
 
 @numba.njit(cache=True, inline="always")
-def render_segment(t0, ua, ub, a_on, a_off, b_rise, tau_rise, b_fall, tau_fall, pwm, j, level,
-                   ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n):
+def render_segment(
+    t0,
+    ua,
+    ub,
+    a_on,
+    a_off,
+    b_rise,
+    tau_rise,
+    b_fall,
+    tau_fall,
+    pwm,
+    j,
+    level,
+    ref,
+    last,
+    c_on,
+    c_off,
+    refractory,
+    out_t,
+    out_i,
+    out_p,
+    n,
+):
     """Events of pixel ``j`` over [t0 + ua, t0 + ub] after a display switch at ``t0``: its
     irradiance is ``a_on + b_rise exp(-u/tau_rise) + b_fall exp(-u/tau_fall)`` while the
     backlight is on and ``a_off`` while it is off (the light the screen does not emit). Steps
     (the switch, backlight edges) fire at their instant; exponentials are crossed exactly."""
     period, on_us = pwm
     if period <= 0.0:
-        return _lit_piece(t0, ua, ub, a_on, b_rise, tau_rise, b_fall, tau_fall, j, level, ref,
-                          last, c_on, c_off, refractory, out_t, out_i, out_p, n)
+        return _lit_piece(
+            t0,
+            ua,
+            ub,
+            a_on,
+            b_rise,
+            tau_rise,
+            b_fall,
+            tau_fall,
+            j,
+            level,
+            ref,
+            last,
+            c_on,
+            c_off,
+            refractory,
+            out_t,
+            out_i,
+            out_p,
+            n,
+        )
     cycle = math.floor((t0 + ua) / period)  # counted in whole cycles: always moves on
     while True:
         start = cycle * period - t0
@@ -195,12 +285,44 @@ def render_segment(t0, ua, ub, a_on, a_off, b_rise, tau_rise, b_fall, tau_fall, 
             return n
         lo, hi = max(start, ua), min(start + on_us, ub)
         if lo < hi:
-            n = _lit_piece(t0, lo, hi, a_on, b_rise, tau_rise, b_fall, tau_fall, j, level,
-                           ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n)
+            n = _lit_piece(
+                t0,
+                lo,
+                hi,
+                a_on,
+                b_rise,
+                tau_rise,
+                b_fall,
+                tau_fall,
+                j,
+                level,
+                ref,
+                last,
+                c_on,
+                c_off,
+                refractory,
+                out_t,
+                out_i,
+                out_p,
+                n,
+            )
         lo, hi = max(start + on_us, ua), min(start + period, ub)
         if lo < hi:
-            n = _step_to(t0 + lo, math.log(a_off), j, level, ref, last, c_on, c_off,
-                         refractory, out_t, out_i, out_p, n)
+            n = _step_to(
+                t0 + lo,
+                math.log(a_off),
+                j,
+                level,
+                ref,
+                last,
+                c_on,
+                c_off,
+                refractory,
+                out_t,
+                out_i,
+                out_p,
+                n,
+            )
         cycle += 1
 
 
@@ -208,15 +330,35 @@ def render_segment(t0, ua, ub, a_on, a_off, b_rise, tau_rise, b_fall, tau_fall, 
 def _step_to(t, value, j, level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n):
     """An instantaneous change of pixel ``j``'s log irradiance to ``value`` at time t."""
     if value != level[j]:
-        n = cross_linear(t, level[j], t, value, j, ref, last, c_on, c_off, refractory, out_t,
-                         out_i, out_p, n)
+        n = cross_linear(
+            t, level[j], t, value, j, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
+        )
         level[j] = value
     return n
 
 
 @numba.njit(cache=True, inline="always")
-def _lit_piece(t0, ua, ub, a, b_rise, tau_rise, b_fall, tau_fall, j, level, ref, last, c_on,
-               c_off, refractory, out_t, out_i, out_p, n):
+def _lit_piece(
+    t0,
+    ua,
+    ub,
+    a,
+    b_rise,
+    tau_rise,
+    b_fall,
+    tau_fall,
+    j,
+    level,
+    ref,
+    last,
+    c_on,
+    c_off,
+    refractory,
+    out_t,
+    out_i,
+    out_p,
+    n,
+):
     """``render_segment`` over [ua, ub] with the backlight on throughout."""
     lum = a + b_rise + b_fall  # at the switch itself
     if ua > 0.0:
@@ -225,22 +367,77 @@ def _lit_piece(t0, ua, ub, a, b_rise, tau_rise, b_fall, tau_fall, j, level, ref,
             lum += b_rise * math.exp(-ua / tau_rise)
         if b_fall != 0.0:
             lum += b_fall * math.exp(-ua / tau_fall)
-    n = _step_to(t0 + ua, math.log(lum), j, level, ref, last, c_on, c_off, refractory, out_t,
-                 out_i, out_p, n)
+    n = _step_to(
+        t0 + ua, math.log(lum), j, level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
+    )
     if b_rise == 0.0 and b_fall == 0.0:
         return n
     if b_fall == 0.0 or b_rise == 0.0 or tau_rise == tau_fall:
         tau = tau_rise if b_rise != 0.0 else tau_fall
-        n, level[j] = cross_exponential(t0, ua, ub, a, b_rise + b_fall, tau, j, ref, last, c_on,
-                                        c_off, refractory, out_t, out_i, out_p, n)
+        n, level[j] = cross_exponential(
+            t0,
+            ua,
+            ub,
+            a,
+            b_rise + b_fall,
+            tau,
+            j,
+            ref,
+            last,
+            c_on,
+            c_off,
+            refractory,
+            out_t,
+            out_i,
+            out_p,
+            n,
+        )
         return n
-    return _cross_two_exponentials(t0, ua, ub, a, b_rise, tau_rise, b_fall, tau_fall, j, level,
-                                   ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n)
+    return _cross_two_exponentials(
+        t0,
+        ua,
+        ub,
+        a,
+        b_rise,
+        tau_rise,
+        b_fall,
+        tau_fall,
+        j,
+        level,
+        ref,
+        last,
+        c_on,
+        c_off,
+        refractory,
+        out_t,
+        out_i,
+        out_p,
+        n,
+    )
 
 
 @numba.njit(cache=True)
-def _cross_two_exponentials(t0, ua, ub, a, b1, tau1, b2, tau2, j, level, ref, last, c_on,
-                            c_off, refractory, out_t, out_i, out_p, n):
+def _cross_two_exponentials(
+    t0,
+    ua,
+    ub,
+    a,
+    b1,
+    tau1,
+    b2,
+    tau2,
+    j,
+    level,
+    ref,
+    last,
+    c_on,
+    c_off,
+    refractory,
+    out_t,
+    out_i,
+    out_p,
+    n,
+):
     """Level crossings of ``a + b1 exp(-u/tau1) + b2 exp(-u/tau2)`` over [ua, ub], linearly
     interpolated between samples on a geometric ladder from the switch."""
     end = min(ub, _SETTLED * max(tau1, tau2))
@@ -251,8 +448,9 @@ def _cross_two_exponentials(t0, ua, ub, a, b1, tau1, b2, tau2, j, level, ref, la
     while u < end:
         un = min(u_next, end)
         ln = math.log(a + b1 * math.exp(-un / tau1) + b2 * math.exp(-un / tau2))
-        n = cross_linear(t0 + u, lu, t0 + un, ln, j, ref, last, c_on, c_off, refractory,
-                         out_t, out_i, out_p, n)
+        n = cross_linear(
+            t0 + u, lu, t0 + un, ln, j, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
+        )
         u, lu = un, ln
         u_next *= _LADDER_RATIO
     level[j] = lu
@@ -262,9 +460,17 @@ def _cross_two_exponentials(t0, ua, ub, a, b1, tau1, b2, tau2, j, level, ref, la
 class StaticRenderer:
     """Signal events of a still camera: each pixel's cell mix is fixed, its state compact."""
 
-    def __init__(self, pix_index: np.ndarray, sample_points: np.ndarray, layout: ScreenLayout,
-                 timeline: DisplayTimeline, radiometry: Radiometry, c_on: np.ndarray,
-                 c_off: np.ndarray, refractory_us: float) -> None:
+    def __init__(
+        self,
+        pix_index: np.ndarray,
+        sample_points: np.ndarray,
+        layout: ScreenLayout,
+        timeline: DisplayTimeline,
+        radiometry: Radiometry,
+        c_on: np.ndarray,
+        c_off: np.ndarray,
+        refractory_us: float,
+    ) -> None:
         region = regions(sample_points, layout)
         sees_marker = (region >= 0).any(axis=1)
         region, sample_points = region[sees_marker], sample_points[sees_marker]
@@ -274,9 +480,12 @@ class StaticRenderer:
         rad = radiometry
         # Constant part of each pixel's irradiance: reflection on its cell samples, the black
         # screen and wall it also sees, and the dark floor.
-        self.pix_const = (rad.dark + rad.screen_ambient * (region >= 0).sum(1) / s
-                          + rad.screen_black * (region == SCREEN).sum(1) / s
-                          + rad.wall * (region == WALL).sum(1) / s)
+        self.pix_const = (
+            rad.dark
+            + rad.screen_ambient * (region >= 0).sum(1) / s
+            + rad.screen_black * (region == SCREEN).sum(1) / s
+            + rad.wall * (region == WALL).sum(1) / s
+        )
         self.pix_v = screen_fraction(sample_points, layout).mean(axis=1)
         self.timeline = timeline
         self.c_on, self.c_off = c_on[self.pix_index], c_off[self.pix_index]
@@ -287,8 +496,11 @@ class StaticRenderer:
         # Initial state: the screen settled on the refresh before the first one.
         first = timeline.window(timeline.start_refresh - 1, timeline.start_refresh - 1)
         lum = np.zeros(len(self.pix_index))
-        np.add.at(lum, np.repeat(np.arange(len(lum)), np.diff(self.ptr)),
-                  self.weights * first.target[0, self.cells])
+        np.add.at(
+            lum,
+            np.repeat(np.arange(len(lum)), np.diff(self.ptr)),
+            self.weights * first.target[0, self.cells],
+        )
         self.level = np.log(self.pix_const + lum)
         self.ref = self.level.copy()
         self.last = np.full(len(lum), -np.inf)
@@ -311,10 +523,32 @@ class StaticRenderer:
         while j < len(self.pix_index):
             out_t, out_i, out_p = self._out.get()
             j_next, n = _static_window(
-                float(t1), j, self.pix_v, self.pix_const, self.ptr, self.cells, self.weights,
-                win.k_first, win.target, win.at_switch, tl.start_refresh, d.period_us,
-                d.scan_us, *self._tau, self._pwm, self.next_switch, self.level, self.ref, self.last,
-                self.c_on, self.c_off, self.refractory, out_t, out_i, out_p)
+                float(t1),
+                j,
+                self.pix_v,
+                self.pix_const,
+                self.ptr,
+                self.cells,
+                self.weights,
+                win.k_first,
+                win.target,
+                win.at_switch,
+                tl.start_refresh,
+                d.period_us,
+                d.scan_us,
+                *self._tau,
+                self._pwm,
+                self.next_switch,
+                self.level,
+                self.ref,
+                self.last,
+                self.c_on,
+                self.c_off,
+                self.refractory,
+                out_t,
+                out_i,
+                out_p,
+            )
             parts_t.append(out_t[:n].copy())
             parts_i.append(self.pix_index[out_i[:n]])
             parts_p.append(out_p[:n].copy())

@@ -92,8 +92,12 @@ class Scene:
                 "scanout_fraction / refresh_hz",
             },
             "display": self.display.to_dict(),
-            "camera": {"width": self.camera.width, "height": self.camera.height,
-                       "K": self.camera.K.tolist(), "dist": self.camera.dist.tolist()},
+            "camera": {
+                "width": self.camera.width,
+                "height": self.camera.height,
+                "K": self.camera.K.tolist(),
+                "dist": self.camera.dist.tolist(),
+            },
             "motion": self.motion.to_dict(),
             "sensor": self.sensor.to_dict(),
             "optics": self.optics.to_dict(),
@@ -106,16 +110,23 @@ class Scene:
     @classmethod
     def from_dict(cls, d: dict) -> Scene:
         e = d["encoder"]
-        encoder = StreamEncoder(base64.b64decode(e["message_b64"]), name=e["name"],
-                                profile=e["profile"], cells=e["cells"], ring=e["ring"],
-                                preamble=e["preamble"], stream_id=e["stream_id"])
+        encoder = StreamEncoder(
+            base64.b64decode(e["message_b64"]),
+            name=e["name"],
+            profile=e["profile"],
+            cells=e["cells"],
+            ring=e["ring"],
+            preamble=e["preamble"],
+            stream_id=e["stream_id"],
+        )
         cam = d["camera"]
         return cls(
             encoder=encoder,
             marker_size_m=d["marker_size_m"],
             display=Display.from_dict(d["display"]),
-            camera=CameraModel(cam["width"], cam["height"], np.array(cam["K"]),
-                               np.array(cam["dist"])),
+            camera=CameraModel(
+                cam["width"], cam["height"], np.array(cam["K"]), np.array(cam["dist"])
+            ),
             motion=motion_from_dict(d["motion"]),
             sensor=SensorModel.from_dict(d["sensor"]),
             optics=Optics(**d["optics"]),
@@ -125,9 +136,7 @@ class Scene:
         )
 
 
-def marker_size_for_cell_px(cells_px: float, geometry, distance_m: float, focal_px: float
-                            ) -> float:
+def marker_size_for_cell_px(cells_px: float, geometry, distance_m: float, focal_px: float) -> float:
     """Marker size (white ring's outer side) that shows ``cells_px`` pixels per cell at
     ``distance_m`` facing the camera."""
     return cells_px * geometry.tracked_side * distance_m / focal_px
-

@@ -56,10 +56,18 @@ class SensorModel:
         if self.lux < 0:
             raise ValueError(f"lux must be >= 0, got {self.lux}")
         if min(self.threshold_on, self.threshold_off) < 0.01:
-            raise ValueError("contrast thresholds must be >= 0.01 ln units, got "
-                             f"{self.threshold_on}, {self.threshold_off}")
-        for name in ("threshold_sigma", "refractory_us", "leak_hz", "shot_hz", "latency_us",
-                     "jitter_us"):
+            raise ValueError(
+                "contrast thresholds must be >= 0.01 ln units, got "
+                f"{self.threshold_on}, {self.threshold_off}"
+            )
+        for name in (
+            "threshold_sigma",
+            "refractory_us",
+            "leak_hz",
+            "shot_hz",
+            "latency_us",
+            "jitter_us",
+        ):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.dark_nits <= 0:
@@ -72,8 +80,9 @@ class SensorModel:
         try:
             base = PRESETS[name]
         except KeyError:
-            raise ValueError(f"unknown sensor preset {name!r}; valid presets: "
-                             f"{', '.join(PRESETS)}") from None
+            raise ValueError(
+                f"unknown sensor preset {name!r}; valid presets: {', '.join(PRESETS)}"
+            ) from None
         return base if lux is None else replace(base, lux=lux)
 
     def to_dict(self) -> dict:
@@ -185,8 +194,9 @@ def cross_linear(ta, la, tb, lb, i, ref, last, c_on, c_off, refractory, out_t, o
 
 
 @numba.njit(cache=True)
-def cross_exponential(t0, ua, ub, a, b, tau, i, ref, last, c_on, c_off, refractory,
-                      out_t, out_i, out_p, n):
+def cross_exponential(
+    t0, ua, ub, a, b, tau, i, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
+):
     """Events of pixel ``i`` whose irradiance (dark floor included) is ``a + b exp(-u / tau)``
     at ``t0 + u``, for ``u`` from ``ua`` to ``ub``; crossing times are exact. Returns the
     event count and the log level at ``ub``."""
@@ -207,8 +217,9 @@ def cross_exponential(t0, ua, ub, a, b, tau, i, ref, last, c_on, c_off, refracto
 # --- noise, delay, readout (numpy, per chunk) --------------------------------------------------
 
 
-def background_rates(sensor: SensorModel, pixels: PixelArray, intensity: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def background_rates(
+    sensor: SensorModel, pixels: PixelArray, intensity: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel leak (ON) and shot-noise rates in Hz. ``intensity`` is each pixel's irradiance
     relative to the screen's white (v2e's ``(I + 20) / 275`` on 8-bit values)."""
     leak = sensor.leak_hz * pixels.leak_factor
@@ -235,8 +246,9 @@ class BackgroundNoise:
             if peak > 0:
                 self._sources.append((peak, rates / peak, polarity))
 
-    def events(self, t0: float, t1: float, rng: np.random.Generator
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def events(
+        self, t0: float, t1: float, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ts, idx, ps = [np.zeros(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
         for peak, accept, polarity in self._sources:
             n = rng.poisson(peak * len(accept) * (t1 - t0) * 1e-6)
@@ -244,13 +256,23 @@ class BackgroundNoise:
             pix = pix[rng.random(n) < accept[pix]]
             ts.append(rng.uniform(t0, t1, len(pix)))
             idx.append(pix)
-            ps.append(np.full(len(pix), polarity, np.int8) if polarity else
-                      rng.choice(np.array([-1, 1], np.int8), len(pix)))
+            ps.append(
+                np.full(len(pix), polarity, np.int8)
+                if polarity
+                else rng.choice(np.array([-1, 1], np.int8), len(pix))
+            )
         return np.concatenate(ts), np.concatenate(idx), np.concatenate(ps)
 
 
-def to_events(t: np.ndarray, idx: np.ndarray, p: np.ndarray, width: int, sensor: SensorModel,
-              rng: np.random.Generator, pending: np.ndarray | None = None) -> np.ndarray:
+def to_events(
+    t: np.ndarray,
+    idx: np.ndarray,
+    p: np.ndarray,
+    width: int,
+    sensor: SensorModel,
+    rng: np.random.Generator,
+    pending: np.ndarray | None = None,
+) -> np.ndarray:
     """Delay, quantise to microseconds, cap the readout rate, and pack as events sorted by time
     together with the already packed ``pending`` events (held back from an earlier window)."""
     t = t + sensor.latency_us
@@ -266,8 +288,9 @@ def to_events(t: np.ndarray, idx: np.ndarray, p: np.ndarray, width: int, sensor:
         p = np.concatenate([pending["p"], p])
     ev = np.empty(len(t_us), EVENT_DTYPE)
     if len(t_us):
-        _pack_sorted(t_us, idx.astype(np.int64, copy=False), p.astype(np.int8, copy=False),
-                     width, ev)
+        _pack_sorted(
+            t_us, idx.astype(np.int64, copy=False), p.astype(np.int8, copy=False), width, ev
+        )
     return ev
 
 
