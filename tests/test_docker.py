@@ -154,7 +154,9 @@ def wait_healthy(command: list[str], service: str, timeout_s: float) -> None:
 @pytest.mark.docker
 @pytest.mark.slow
 @pytest.mark.timeout(1800)  # building on the vfs storage driver takes minutes
-def test_images_build_and_the_compose_file_runs(compose: dict, tmp_path: Path) -> None:
+def test_images_build_and_the_compose_file_runs(
+    compose: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     problem = docker_engine_problem()
     if problem:
         pytest.skip(problem)
@@ -162,13 +164,14 @@ def test_images_build_and_the_compose_file_runs(compose: dict, tmp_path: Path) -
     variant = tmp_path / "docker-compose.yml"
     variant.write_text(yaml.safe_dump(host_network_variant(compose, port)))
     command = [*compose_command(), "-p", f"eventocc-test-{port}", "-f", str(variant)]
-    env = {
-        **os.environ,
+    # Every compose call (up, ps, down) interpolates the file, so each needs these.
+    for name, value in {
         "EVENTOCC_TOKEN": "docker-test",
         "BASE_IMAGE": BASE_IMAGE,
         "DOCKER_BUILDKIT": "0",
         "COMPOSE_HTTP_TIMEOUT": "900",  # creating a container copies the image on vfs
-    }
+    }.items():
+        monkeypatch.setenv(name, value)
     build = subprocess.run(
         [
             "docker",
@@ -191,7 +194,6 @@ def test_images_build_and_the_compose_file_runs(compose: dict, tmp_path: Path) -
     try:
         up = subprocess.run(
             [*command, "up", "-d", "--no-build"],
-            env=env,
             capture_output=True,
             text=True,
             check=False,
@@ -205,4 +207,4 @@ def test_images_build_and_the_compose_file_runs(compose: dict, tmp_path: Path) -
         with urllib.request.urlopen(base + "/metrics", timeout=5) as response:
             assert "eventocc_receivers_connected 1" in response.read().decode()
     finally:
-        subprocess.run([*command, "down", "-v"], env=env, capture_output=True, check=False)
+        subprocess.run([*command, "down", "-v"], capture_output=True, check=False)
