@@ -255,3 +255,11 @@ def test_writers_reject_out_of_range_times(tmp_path):
             )
     with pytest.raises(ValueError, match="outside the 10x10 sensor"):
         write_events(tmp_path / "x.raw", make_events([0], [10], [0], [1]), width=10, height=10)
+
+
+def test_monotonic_option_holds_the_clock_for_evt2_too(tmp_path):
+    path = tmp_path / "ev.raw"
+    ev = make_events([100, 300, 200, 400], [1, 2, 3, 4], [0, 0, 0, 0], [1, 0, 1, 0])
+    write_events(path, [ev[:2], ev[2:]], format="evt2", width=8, height=8)  # one step back
+    assert concat(read_events(path))["t"].tolist() == [100, 300, 200, 400]
+    assert concat(read_events(path, monotonic=True))["t"].tolist() == [100, 300, 300, 400]

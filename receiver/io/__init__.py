@@ -162,8 +162,8 @@ def read_events(
         stream = open_raw(path, None if format == "raw" else format, monotonic=monotonic)
     else:
         stream = READERS[format](path)
-        if monotonic:
-            stream.map_chunks(_hold_clock)
+    if monotonic:  # a no-op after EVT 3.0's clock hold; the guarantee for every other format
+        stream.map_chunks(_hold_clock)
     if on_error == "stop":
         stream.map_chunks(_stop_on_error)
     if chunk_events is not None:

@@ -267,8 +267,9 @@ def open_raw(path: Path, encoding: str | None = None, *, monotonic: bool = False
     """Stream a RAW file; ``encoding`` overrides the header (needed for headerless files).
 
     EVT 3.0 sensors send TIME_LOW words that step back by a few microseconds; by default they
-    are decoded literally, as OpenEB does. ``monotonic`` holds the clock at its latest value
-    instead, so timestamps never decrease (the rule faery and some other decoders follow)."""
+    are decoded literally, as OpenEB does. ``monotonic`` holds the EVT 3.0 clock at its latest
+    value instead (the rule faery follows); other encodings ignore it (``read_events`` makes
+    their timestamps monotonic after decoding)."""
     with path.open("rb") as f:
         header, payload = read_header(f)
     named = header_encoding(header)
