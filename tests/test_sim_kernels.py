@@ -77,7 +77,7 @@ def test_a_still_camera_gives_the_same_events_whatever_the_chunk_size():
 def test_closed_form_runs_match_sampling_every_pixel_at_every_sub_step(monkeypatch):
     scene = _scene(motion=HandHeldMotion(distance_m=3.0, flow_px_per_ms=0.5, seed=1))
     fast = concat(simulate(scene, 0.03))
-    monkeypatch.setattr(moving, "_BOUND_SAFETY", np.inf)  # no footprint is ever safe
+    monkeypatch.setattr(moving.MovingRenderer, "closed_form_runs", False)  # sample every step
     sampled = concat(simulate(scene, 0.03))
     assert len(fast) > 5000
     assert len(fast) == pytest.approx(len(sampled), rel=0.02)

@@ -1,15 +1,22 @@
-"""Signal events of a moving camera: adaptive sub-steps over the screen's image only.
+"""Signal events of a moving camera: adaptive sub-steps, closed-form runs between them.
 
 Each chunk is cut into sub-steps short enough that no screen point moves more than
-``MAX_STEP_PX`` in the image, and one compiled pass renders every pixel of the screen's image box
-through all of them. A pixel whose whole footprint stays on one region (a cell, the black screen,
-the wall) for several sub-steps sees that region's light only: the display transitions of a cell
-are exponentials solved in closed form (as for a still camera, with the scan-out delay of the
-screen row under the pixel at the switch), so such runs cost one look-up per refresh. A pixel
-whose footprint meets a region boundary is sampled: its footprint at the sub-step's end (sample
-points interpolated linearly between the two poses) and, where one of its cells is switching, at
-the switch instant and on a geometric ladder after it. Log intensity is interpolated linearly
-between those samples (ESIM). Pixels outside the box see the uniform wall and keep their level.
+``MAX_STEP_PX`` in the image; the poses in between are interpolated linearly. A pixel's
+*footprint* is its optics sample rays (``Optics``) and its *content* at an instant is which
+region (a cell, the black screen, the wall) each sample sees: a small sorted list of regions
+and sample counts. Cells are convex, so a content equal at both ends of a sub-step holds
+throughout it, and while it holds the pixel sees a fixed mix of cells whose light is a known
+exponential per refresh: such a *run*, however many sub-steps long, is rendered in closed form
+(as for a still camera), with each switch reaching the pixel when the scan-out reaches the screen
+row under its centre. Only a sub-step across which the content changes is sampled: its weights
+move linearly from one end's to the other's and its log irradiance is interpolated linearly
+between samples (ESIM), taken at its end and, where one of its cells switches, just before the
+switch, at it and on a geometric ladder after it.
+
+Most footprints lie well inside one region, and for those the content is known without sampling:
+the distance from the centre point to the region's edge bounds how many sub-steps the footprint
+stays there, so a pixel costs one ray per run instead of a footprint per sub-step. Pixels outside
+the screen's image box see the uniform wall and keep their level.
 """
 
 from __future__ import annotations
@@ -21,18 +28,34 @@ import numpy as np
 
 from receiver.sim.display import DisplayTimeline
 from receiver.sim.motion import Trajectory, image_box, project_points
-from receiver.sim.optics import centre_rays, plane_point, rays_to_plane, sample_offsets
+from receiver.sim.optics import (
+    POSE_C,
+    POSE_R,
+    centre_rays,
+    flat_poses,
+    plane_point,
+    rays_to_plane,
+    sample_offsets,
+)
 from receiver.sim.render import (
     _LADDER_RATIO,
     _LADDER_START,
     SCREEN,
+    SETTLED_CONTRAST,
     WALL,
-    cell_of,
     plane_geometry,
-    region_of,
     render_segment,
 )
-from receiver.sim.sensor import EventBuffer, PixelArray, cross_linear
+from receiver.sim.sensor import (
+    EVENT_OUT_DTYPE,
+    LAST,
+    LEVEL,
+    REF,
+    EventBuffer,
+    PixelArray,
+    cross_linear,
+    pixel_state,
+)
 
 MAX_STEP_PX = 0.5
 """Largest image displacement of the screen within one sub-step (ESIM's flow-based step)."""
@@ -42,78 +65,111 @@ _SETTLED_TAU = 6.0
 _STEP_EPS_US = 1e-3
 """Sample just before a switch, so instantaneous switches make a step at the right time."""
 _MAX_POINTS = 96
+_LOG_RATIO = math.log(_LADDER_RATIO)
 _BOUND_SAFETY = 1.25
 """Margin on the plane-distance bounds that decide when a footprint may leave its region."""
 _NO_PWM = (0.0, 0.0)
 
 
-@numba.njit(cache=True)
-def _luminance(px, py, t, geo, disp, rad, k_first, target, at_switch):
-    """Luminance (cd/m²) of marker-plane point (px, py) at time t."""
-    top, screen = geo[3], geo[4]
-    c = region_of(px, py, geo)
-    if c == SCREEN:
-        return rad[1]
-    if c == WALL:
-        return rad[2]
-    start, period, scan, tau_rise, tau_fall = disp
-    v = min(max((py - top) / screen, 0.0), 1.0)
-    k = start + math.floor((t - v * scan) / period)
-    kk = min(max(int(k - k_first), 0), target.shape[0] - 1)
-    u = t - ((k - start) * period + v * scan)
-    end = target[kk, c]
-    begin = at_switch[kk, c]
-    tau = tau_rise if end > begin else tau_fall
-    lum = end if tau == 0.0 else end + (begin - end) * math.exp(-u / tau)
-    return lum + rad[0]
+# The kernels take the screen as float tuples and one array, and the camera path as one array:
+# numba charges for every array an inlined call passes (even inside a tuple), and these calls
+# run per pixel and sub-step.
+#   screen (geo, disp, rad), float tuples:
+#   geo   ``plane_geometry`` of the layout
+#   disp  (period, scan, tau_rise, tau_fall, first) in us; ``first``: the row of ``lum`` that
+#         holds refresh ``start_refresh`` (the one whose scan-out starts at t = 0)
+#   rad   (cell ambient, black screen, wall, dark floor) luminances
+#   lum   (2, refreshes, cells): the level each refresh of the window drives a cell towards,
+#         and its level at the switch
+#   path  (sub-steps + 1, 13): T_world_cam as ``flat_poses``, then the time
+_R, _C, _T = POSE_R, POSE_C, 12
 
 
-@numba.njit(cache=True)
-def _log_irradiance(alpha, t, p0, p1, geo, disp, rad, k_first, target, at_switch, seen):
-    """Log irradiance of a footprint whose samples are interpolated ``alpha`` of the way from
-    ``p0`` to ``p1``. Each distinct region is evaluated once, at its first sample (the scan-out
-    delay across one footprint is tens of microseconds); ``seen`` is (S, 3) scratch."""
-    s = p0.shape[0]
-    distinct = 0
-    for q in range(s):
-        px = p0[q, 0] + alpha * (p1[q, 0] - p0[q, 0])
-        py = p0[q, 1] + alpha * (p1[q, 1] - p0[q, 1])
-        r = region_of(px, py, geo)
-        for d in range(distinct + 1):
-            if d == distinct:
-                seen[d, 0] = r
-                seen[d, 1] = 1.0
-                seen[d, 2] = _luminance(px, py, t, geo, disp, rad, k_first, target, at_switch)
-                distinct += 1
-                break
-            if seen[d, 0] == r:
-                seen[d, 1] += 1.0
-                break
-    total = 0.0
-    for d in range(distinct):
-        total += seen[d, 1] * seen[d, 2]
-    return math.log(rad[3] + total / s)
+# --- the light a footprint sees ------------------------------------------------------------
 
 
-@numba.njit(cache=True)
-def _switching(p, k, geo, k_first, target, at_switch):
-    """Whether any footprint sample at points ``p`` lies on a cell changing at refresh k."""
-    kk = int(k - k_first)
-    if kk < 0 or kk >= target.shape[0]:
+@numba.njit(cache=True, inline="always")
+def _refresh_at(t, v, disp):
+    """(refresh counted from the start, time of its switch) that screen row v shows at t."""
+    period, scan = disp[0], disp[1]
+    k = math.floor((t - v * scan) / period + 1e-9)  # a sample at a switch sees the new refresh
+    return k, k * period + v * scan
+
+
+@numba.njit(cache=True, inline="always")
+def _lum_row(k, disp, lum):
+    """Row of ``lum`` holding refresh k (counted from the start), clamped to the window."""
+    return min(max(int(disp[4]) + k, 0), lum.shape[1] - 1)
+
+
+@numba.njit(cache=True, inline="always")
+def _light(regs, w0, w1, alpha, nd, kk, screen, lum):
+    """Luminance of a footprint on regions ``regs[:nd]``, weights ``alpha`` of the way from
+    ``w0`` to ``w1``, ``u`` after the switch to window refresh ``kk``: ``a + b_rise exp(-u /
+    tau_rise) + b_fall exp(-u / tau_fall)``, returned as (a, b_rise, b_fall)."""
+    _, disp, rad = screen
+    tau_rise, tau_fall = disp[2], disp[3]
+    ambient, black, wall, _ = rad
+    a = 0.0
+    b_rise = 0.0
+    b_fall = 0.0
+    for d in range(nd):
+        w = w0[d] + alpha * (w1[d] - w0[d])
+        r = regs[d]
+        if r == SCREEN:
+            a += w * black
+        elif r == WALL:
+            a += w * wall
+        else:
+            end, begin = lum[0, kk, r], lum[1, kk, r]
+            a += w * (ambient + end)
+            if abs(begin - end) <= SETTLED_CONTRAST * end:
+                continue
+            if end > begin:
+                b_rise += w * (begin - end) if tau_rise > 0.0 else 0.0
+            else:
+                b_fall += w * (begin - end) if tau_fall > 0.0 else 0.0
+    return a, b_rise, b_fall
+
+
+@numba.njit(cache=True, inline="always")
+def _log_irradiance(t, v, alpha, regs, w0, w1, nd, screen, lum):
+    """Log irradiance at time t of a footprint on regions ``regs[:nd]`` with weights
+    ``alpha`` of the way from ``w0`` to ``w1``; cells switch when the scan-out reaches row v."""
+    _, disp, rad = screen
+    tau_rise, tau_fall = disp[2], disp[3]
+    k, ts = _refresh_at(t, v, disp)
+    a, b_rise, b_fall = _light(regs, w0, w1, alpha, nd, _lum_row(k, disp, lum), screen, lum)
+    total = rad[3] + a
+    if b_rise != 0.0:
+        total += b_rise * math.exp(-(t - ts) / tau_rise)
+    if b_fall != 0.0:
+        total += b_fall * math.exp(-(t - ts) / tau_fall)
+    return math.log(total)
+
+
+@numba.njit(cache=True, inline="always")
+def _switching(k, regs, nd, disp, lum):
+    """Whether a cell among ``regs[:nd]`` changes at refresh k (counted from the start)."""
+    kk = int(disp[4]) + k
+    if kk < 0 or kk >= lum.shape[1]:
         return False
-    for q in range(p.shape[0]):
-        c = cell_of(p[q, 0], p[q, 1], geo)
-        if c >= 0 and abs(target[kk, c] - at_switch[kk, c]) > 1e-9 * target[kk, c]:
+    for d in range(nd):
+        c = regs[d]
+        if c >= 0 and abs(lum[0, kk, c] - lum[1, kk, c]) > SETTLED_CONTRAST * lum[0, kk, c]:
             return True
     return False
 
 
+# --- where a footprint lies ----------------------------------------------------------------
+
+
 @numba.njit(cache=True, inline="always")
 def _region_and_room(px, py, geo):
-    """Region of marker-plane point (px, py) (as ``_region``) and a lower bound of its distance
-    (metres) to the region's edge; NaN points (rays missing the plane) get no room."""
+    """Region of marker-plane point (px, py) (as ``region_of``) and a lower bound of its
+    distance (metres) to the region's edge; NaN points (rays missing the plane) get no room."""
     if np.isnan(px) or np.isnan(py):
-        return -2, 0.0
+        return WALL, 0.0
     cell_m, ring, side, top, screen = geo[0], geo[1], geo[2], geo[3], geo[4]
     col = px / cell_m + ring
     row = py / cell_m + ring
@@ -127,183 +183,221 @@ def _region_and_room(px, py, geo):
     s_hi = top + screen
     if px >= top and px < s_hi and py >= top and py < s_hi:
         inside = min(min(px - top, s_hi - px), min(py - top, s_hi - py))
-        return -1, min(to_marker, inside)
-    return -2, max(max(top - px, px - s_hi), max(top - py, py - s_hi))
+        return SCREEN, min(to_marker, inside)
+    return WALL, max(max(top - px, px - s_hi), max(top - py, py - s_hi))
 
 
 @numba.njit(cache=True, inline="always")
-def _region_under(rx, ry, R, C, geo):
-    """``_region_and_room`` of the marker-plane point under ray (rx, ry) from pose (R, C)."""
-    px, py = plane_point(rx, ry, R, C)
-    return _region_and_room(px, py, geo)
+def _centre(rx, ry, path, s, geo):
+    """Region, room (as ``_region_and_room``) and plane y of the centre point at step ``s``."""
+    px, py = plane_point(rx, ry, path, s)
+    region, room = _region_and_room(px, py, geo)
+    return region, room, py
 
 
-@numba.njit(cache=True)
-def _cell_run(
-    ta,
-    tb,
-    c,
-    i,
-    rx,
-    ry,
-    t_steps,
-    Rs,
-    Cs,
-    geo,
-    disp,
-    rad,
-    k_first,
-    target,
-    at_switch,
-    level,
-    ref,
-    last,
-    c_on,
-    c_off,
-    refractory,
-    out_t,
-    out_i,
-    out_p,
-    n,
-):
-    """Events of pixel ``i`` (centre ray (rx, ry)) over [ta, tb] while its whole footprint sees
-    cell ``c``: per refresh, a jump at the switch and an exponential after it, both exact. The
-    switch reaches the pixel when the scan-out reaches the screen row under its centre."""
-    top, screen = geo[3], geo[4]
-    start, period, scan, tau_rise, tau_fall = disp[0], disp[1], disp[2], disp[3], disp[4]
-    base = rad[0] + rad[3]  # panel reflection and dark floor
-    m = t_steps.shape[0] - 1
-    dt = (t_steps[m] - t_steps[0]) / m
-    v = _row_fraction(ta, rx, ry, t_steps, dt, Rs, Cs, top, screen)
-    k = int(start) + math.floor((ta - v * scan) / period)
+@numba.njit(cache=True, inline="always")
+def _row_of(py, geo):
+    """Screen-height fraction (scan-out delay) of plane height py; the top row if unknown."""
+    if np.isnan(py):
+        return 0.0
+    return min(max((py - geo[3]) / geo[4], 0.0), 1.0)
+
+
+@numba.njit(cache=True, inline="always")
+def _content(rx, ry, path, s, region, inside, offsets, geo, regs, counts):
+    """Fill ``regs``/``counts`` with the footprint's regions (ascending) and sample counts at
+    step ``s``; ``inside``: the footprint is known to lie on ``region``. Returns their number.
+
+    The samples are placed with the ray-to-plane map linearised at the centre ray (over a
+    pixel the curvature of a perspective map is ~1e-3 px) and classified in cell units, so a
+    sample costs a few multiply-adds instead of a ray intersection and two divisions."""
+    if inside:
+        regs[0] = region
+        counts[0] = offsets.shape[0]
+        return 1
+    dx = path[s, _R] * rx + path[s, _R + 1] * ry + path[s, _R + 2]
+    dy = path[s, _R + 3] * rx + path[s, _R + 4] * ry + path[s, _R + 5]
+    dz = path[s, _R + 6] * rx + path[s, _R + 7] * ry + path[s, _R + 8]
+    inv_dz = 1.0 / dz if dz != 0.0 else 0.0
+    depth = -path[s, _C + 2] * inv_dz
+    if depth <= 0.0:  # the centre ray misses the plane: the wall, as for a lost sample
+        regs[0] = WALL
+        counts[0] = offsets.shape[0]
+        return 1
+    cell_m, ring, side, top, screen = geo[0], geo[1], geo[2], geo[3], geo[4]
+    per_m = 1.0 / cell_m
+    scale = depth * per_m  # plane metres -> cells
+    col0 = (path[s, _C] * per_m + ring) + scale * dx
+    row0 = (path[s, _C + 1] * per_m + ring) + scale * dy
+    # d(plane point)/d(ray), in cells.
+    fx, fy = dx * inv_dz, dy * inv_dz
+    j00 = scale * (path[s, _R] - fx * path[s, _R + 6])
+    j01 = scale * (path[s, _R + 1] - fx * path[s, _R + 7])
+    j10 = scale * (path[s, _R + 3] - fy * path[s, _R + 6])
+    j11 = scale * (path[s, _R + 4] - fy * path[s, _R + 7])
+    lo = top * per_m + ring
+    hi = lo + screen * per_m
+    nd = 0
+    for q in range(offsets.shape[0]):
+        ox, oy = offsets[q, 0], offsets[q, 1]
+        col = col0 + j00 * ox + j01 * oy
+        row = row0 + j10 * ox + j11 * oy
+        if col >= 0.0 and col < side and row >= 0.0 and row < side:
+            r = int(row) * int(side) + int(col)
+        elif col >= lo and col < hi and row >= lo and row < hi:
+            r = SCREEN
+        else:
+            r = WALL
+        pos = 0
+        while pos < nd and regs[pos] < r:
+            pos += 1
+        if pos < nd and regs[pos] == r:
+            counts[pos] += 1.0
+            continue
+        for d in range(nd, pos, -1):
+            regs[d], counts[d] = regs[d - 1], counts[d - 1]
+        regs[pos], counts[pos] = r, 1.0
+        nd += 1
+    return nd
+
+
+@numba.njit(cache=True, inline="always")
+def _same_content(regs, counts, nd_a, nd_b):
+    """Whether the contents in rows 0 and 1 of ``regs``/``counts`` are equal."""
+    if nd_a != nd_b:
+        return False
+    for d in range(nd_a):  # noqa: SIM110 (a plain loop: numba compiles it without a generator)
+        if regs[0, d] != regs[1, d] or counts[0, d] != counts[1, d]:
+            return False
+    return True
+
+
+@numba.njit(cache=True, inline="always")
+def _merge(regs, counts, nd_a, nd_b, merged, w0, w1):
+    """Union of the contents in rows 0 and 1 (ascending regions), with each one's weights;
+    returns its size."""
+    inv_s = 1.0 / counts[0, :nd_a].sum()
+    a = b = nd = 0
+    while a < nd_a or b < nd_b:
+        ra = regs[0, a] if a < nd_a else 1 << 62
+        rb = regs[1, b] if b < nd_b else 1 << 62
+        r = min(ra, rb)
+        merged[nd] = r
+        w0[nd] = counts[0, a] * inv_s if ra == r else 0.0
+        w1[nd] = counts[1, b] * inv_s if rb == r else 0.0
+        a += ra == r
+        b += rb == r
+        nd += 1
+    return nd
+
+
+# --- rendering runs and sampled sub-steps ----------------------------------------------------
+
+
+@numba.njit(cache=True, inline="always")
+def _row_fraction(t, rx, ry, path, geo):
+    """Screen-height fraction of the point under ray (rx, ry) at time t (poses interpolated)."""
+    m = path.shape[0] - 1
+    dt = (path[m, _T] - path[0, _T]) / m
+    s = min(max(int((t - path[0, _T]) / dt), 0), m - 1)
+    alpha = min(max((t - path[s, _T]) / dt, 0.0), 1.0)
+    _, y0 = plane_point(rx, ry, path, s)
+    _, y1 = plane_point(rx, ry, path, s + 1)
+    return _row_of(y0 + alpha * (y1 - y0), geo)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _run(ta, tb, rx, ry, regs, counts, nd, path, screen, lum, i, state, rfr, out, n):
+    """Events of pixel ``i`` (centre ray (rx, ry)) over [ta, tb] while its footprint content
+    stays ``regs``/``counts``: per refresh, a jump at the switch and exponentials after it, in
+    closed form. The switch reaches the pixel when the scan-out reaches the screen row under its
+    centre."""
+    if regs[nd - 1] < 0:  # no cell (regions ascend, cells last): the level is already there
+        return n
+    geo, disp, rad = screen
+    period, scan, tau_rise, tau_fall = disp[0], disp[1], disp[2], disp[3]
+    per_sample = 1.0 / counts[:nd].sum()
+    v = _row_fraction(ta, rx, ry, path, geo)
+    k = math.floor((ta - v * scan) / period)
     while True:
-        ts = (k - start) * period + v * scan
+        ts = k * period + v * scan
         if ts >= tb:
             break
         if ts > ta:  # the row under the pixel at the switch itself
-            v = _row_fraction(ts, rx, ry, t_steps, dt, Rs, Cs, top, screen)
-            ts = (k - start) * period + v * scan
+            v = _row_fraction(ts, rx, ry, path, geo)
+            ts = k * period + v * scan
             if ts >= tb:
                 break
-        kk = min(max(k - k_first, 0), target.shape[0] - 1)
-        end = target[kk, c]
-        begin = at_switch[kk, c]
-        tau = tau_rise if end > begin else tau_fall
-        b = begin - end if tau > 0.0 else 0.0
+        a, b_rise, b_fall = _light(
+            regs, counts, counts, 0.0, nd, _lum_row(k, disp, lum), screen, lum
+        )
+        a = rad[3] + a * per_sample
         ub = min(tb - ts, period)
         n = render_segment(
             ts,
             max(ta - ts, 0.0),
             ub,
-            base + end,
-            base,
-            b,
-            tau,
-            0.0,
-            tau,
+            a,
+            a,
+            b_rise * per_sample,
+            tau_rise,
+            b_fall * per_sample,
+            tau_fall,
             _NO_PWM,
             i,
-            level,
-            ref,
-            last,
-            c_on,
-            c_off,
-            refractory,
-            out_t,
-            out_i,
-            out_p,
+            state,
+            rfr,
+            out,
             n,
         )
         k += 1
     return n
 
 
-@numba.njit(cache=True, inline="always")
-def _row_fraction(t, rx, ry, t_steps, dt, Rs, Cs, top, screen):
-    """Screen-height fraction of the point under ray (rx, ry) at time t (poses interpolated)."""
-    m = t_steps.shape[0] - 1
-    s = min(max(int((t - t_steps[0]) / dt), 0), m - 1)
-    alpha = min(max((t - t_steps[s]) / dt, 0.0), 1.0)
-    _, y0 = plane_point(rx, ry, Rs[s], Cs[s])
-    _, y1 = plane_point(rx, ry, Rs[s + 1], Cs[s + 1])
-    y = y0 + alpha * (y1 - y0)
-    if np.isnan(y):
-        return 0.0
-    return min(max((y - top) / screen, 0.0), 1.0)
-
-
-@numba.njit(cache=True)
-def _sampled_step(
-    ta,
-    tb,
-    i,
-    p0,
-    p1,
-    geo,
-    disp,
-    rad,
-    k_first,
-    target,
-    at_switch,
-    tau_fast,
-    tau_slow,
-    times,
-    seen,
-    level,
-    ref,
-    last,
-    c_on,
-    c_off,
-    refractory,
-    out_t,
-    out_i,
-    out_p,
-    n,
-):
-    """Events of pixel ``i`` over the sub-step [ta, tb] from its footprint samples at both ends
-    (``p0``, ``p1``), adding samples at the display switches of its cells."""
-    start, period, scan = disp[0], disp[1], disp[2]
-    s = p0.shape[0]
-    # Sample times: display switches of the cells under this pixel, then the step's end.
+@numba.njit(cache=True, error_model="numpy")
+def _sampled_step(ta, tb, v, regs, w0, w1, nd, times, screen, lum, i, state, rfr, out, n):
+    """Events of pixel ``i`` over the sub-step [ta, tb] while its footprint weights move from
+    ``w0`` to ``w1``: log irradiance interpolated linearly between samples at the step's end
+    and around the display switches of its cells (screen row v)."""
+    disp = screen[1]
+    period, scan, tau_rise, tau_fall = disp[0], disp[1], disp[2], disp[3]
+    tau_slow = max(tau_rise, tau_fall)
+    tau_fast = min(tau_rise, tau_fall) if min(tau_rise, tau_fall) > 0.0 else tau_slow
     m = 0
-    cy = p1[s // 2, 1]
-    if not np.isnan(cy):
-        v = min(max((cy - geo[3]) / geo[4], 0.0), 1.0)
-        k = int(start) + math.floor((ta - _SETTLED_TAU * tau_slow - v * scan) / period)
-        while True:
-            ts = (k - start) * period + v * scan
-            if ts > tb:
-                break
-            if _switching(p1, k, geo, k_first, target, at_switch):
-                if ts - _STEP_EPS_US > ta and m < _MAX_POINTS:
-                    times[m] = ts - _STEP_EPS_US
+    # Switches more than two steps back have ladder rungs sparser than the step's own ends.
+    reach = min(_SETTLED_TAU * tau_slow, 2.0 * (tb - ta))
+    k = math.floor((ta - reach - v * scan) / period)
+    while True:
+        ts = k * period + v * scan
+        if ts > tb:
+            break
+        if _switching(k, regs, nd, disp, lum):
+            if ts - _STEP_EPS_US > ta and m < _MAX_POINTS:
+                times[m] = ts - _STEP_EPS_US
+                m += 1
+            if ts > ta and m < _MAX_POINTS:
+                times[m] = ts
+                m += 1
+            u = _LADDER_START * tau_fast
+            if ta - ts > u:  # jump to the first rung inside the step
+                u *= _LADDER_RATIO ** math.ceil(math.log((ta - ts) / u) / _LOG_RATIO)
+            while u < _SETTLED_TAU * tau_slow and ts + u < tb and m < _MAX_POINTS:
+                if ts + u > ta:
+                    times[m] = ts + u
                     m += 1
-                if ts > ta and m < _MAX_POINTS:
-                    times[m] = ts
-                    m += 1
-                u = _LADDER_START * tau_fast
-                while u < _SETTLED_TAU * tau_slow and ts + u < tb and m < _MAX_POINTS:
-                    if ts + u > ta:
-                        times[m] = ts + u
-                        m += 1
-                    u *= _LADDER_RATIO
-            k += 1
-    # Backlight edges: steps at their instant, like instantaneous switches.
+                u *= _LADDER_RATIO
+        k += 1
     _insertion_sort(times, m)  # a handful of times, mostly in order already
     t_prev = ta
-    l_prev = level[i]
+    l_prev = state[LEVEL, i]
     for r in range(m + 1):
         t = times[r] if r < m else tb
         if t <= t_prev and r < m:
             continue
-        lt = _log_irradiance(
-            (t - ta) / (tb - ta), t, p0, p1, geo, disp, rad, k_first, target, at_switch, seen
-        )
-        n = cross_linear(
-            t_prev, l_prev, t, lt, i, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
-        )
+        lt = _log_irradiance(t, v, (t - ta) / (tb - ta), regs, w0, w1, nd, screen, lum)
+        n = cross_linear(t_prev, l_prev, t, lt, i, state, rfr, out, n)
         t_prev, l_prev = t, lt
-    level[i] = l_prev
+    state[LEVEL, i] = l_prev
     return n
 
 
@@ -318,239 +412,156 @@ def _insertion_sort(a, m):
         a[q + 1] = x
 
 
-@numba.njit(cache=True, inline="always")
-def _common_region(p0, p1, geo):
-    """The region all footprint samples lie on at both ends of a sub-step, or -3 if several."""
-    first = region_of(p0[0, 0], p0[0, 1], geo)
-    for q in range(p0.shape[0]):
-        if (
-            region_of(p0[q, 0], p0[q, 1], geo) != first
-            or region_of(p1[q, 0], p1[q, 1], geo) != first
-        ):
-            return -3
-    return first
-
-
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _moving_window(
-    t_steps,
-    Rs,
-    Cs,
-    box,
-    j_start,
-    reach_m,
-    step_m,
-    rays,
-    offsets,
-    geo,
-    disp,
-    rad,
-    k_first,
-    target,
-    at_switch,
-    level,
-    ref,
-    last,
-    c_on,
-    c_off,
-    refractory,
-    out_t,
-    out_i,
-    out_p,
+    path, box, j_start, bounds, closed_form, rays, offsets, screen, lum, state, rfr, out
 ):
-    """Events of the pixels ``j_start ..`` of ``box`` (x0, x1, y0, y1) over the sub-steps
-    ``t_steps`` (poses ``Rs``, ``Cs``). ``reach_m`` bounds the distance on the marker plane from
-    a pixel's centre point to its footprint samples, ``step_m`` how far that point moves in one
-    sub-step. Returns (next pixel, count), stopping early when the output is full."""
+    """Events of the pixels ``j_start ..`` of ``box`` (x0, x1, y0, y1) over the sub-steps of
+    ``path``. ``bounds``: (reach, step), upper bounds on the marker plane of the distance from a
+    pixel's centre point to its footprint samples and of how far that point moves in one
+    sub-step. ``closed_form=False`` samples every sub-step (the reference the runs are tested
+    against). Returns (next pixel, count), stopping early when the output is full."""
     x0, x1, y0, y1 = box
+    reach_m, step_m = bounds
+    geo = screen[0]
+    if not closed_form:
+        reach_m = np.inf
     width = rays.shape[1]
     s = offsets.shape[0]
-    m = t_steps.shape[0] - 1
-    p0 = np.empty((s, 2))
-    p1 = np.empty((s, 2))
+    m = path.shape[0] - 1
+    # Contents at both ends of the sub-step in hand: row 0 its start (the run's), row 1 its end.
+    regs = np.empty((2, s), np.int64)
+    counts = np.empty((2, s))
+    merged = np.empty(2 * s, np.int64)
+    w0 = np.empty(2 * s)
+    w1 = np.empty(2 * s)
     times = np.empty(_MAX_POINTS)
-    seen = np.empty((s, 3))
-    tau_rise, tau_fall = disp[3], disp[4]
-    tau_fast = min(tau_rise, tau_fall) if min(tau_rise, tau_fall) > 0 else max(tau_rise, tau_fall)
-    tau_slow = max(tau_rise, tau_fall)
     n = 0
     bw = x1 - x0
     for j in range(j_start, bw * (y1 - y0)):
         y = y0 + j // bw
         x = x0 + j % bw
         i = y * width + x
-        saved = (ref[i], last[i], level[i])
+        saved = (state[REF, i], state[LAST, i], state[LEVEL, i])
         n_before = n
         rx, ry = rays[y, x, 0], rays[y, x, 1]
+        region, room, _ = _centre(rx, ry, path, 0, geo)
+        nd_a = _content(rx, ry, path, 0, region, room > reach_m, offsets, geo, regs[0], counts[0])
+        t_run = path[0, _T]
         step = 0
-        sampled_up_to = -1
-        region, room = _region_under(rx, ry, Rs[0], Cs[0], geo)
         while step < m:
-            safe = int((room - reach_m) / step_m) if room > reach_m else 0
-            if safe >= 1:  # the footprint stays on one region for ``safe`` sub-steps
-                end = min(step + safe, m)
-                if region >= 0:
-                    n = _cell_run(
-                        t_steps[step],
-                        t_steps[end],
-                        region,
-                        i,
-                        rx,
-                        ry,
-                        t_steps,
-                        Rs,
-                        Cs,
-                        geo,
-                        disp,
-                        rad,
-                        k_first,
-                        target,
-                        at_switch,
-                        level,
-                        ref,
-                        last,
-                        c_on,
-                        c_off,
-                        refractory,
-                        out_t,
-                        out_i,
-                        out_p,
-                        n,
-                    )
-                step = end
-                if step < m:
-                    region, room = _region_under(rx, ry, Rs[step], Cs[step], geo)
+            if room > reach_m:  # the footprint stays on one region for ``safe`` sub-steps
+                safe = int((room - reach_m) / step_m)
+                if safe >= 1:
+                    step = min(step + safe, m)
+                    if step < m:
+                        region, room, _ = _centre(rx, ry, path, step, geo)
+                    continue
+            end = step + 1
+            region_b, room_b, py_b = _centre(rx, ry, path, end, geo)
+            nd_b = _content(
+                rx, ry, path, end, region_b, room_b > reach_m, offsets, geo, regs[1], counts[1]
+            )
+            if closed_form and _same_content(regs, counts, nd_a, nd_b):
+                # Each sample moves straight and is on the same region at both ends: on a
+                # convex cell, all the way between (the screen margin and the wall are not
+                # convex, but a sub-step is too short to cut a corner of the marker).
+                step, region, room = end, region_b, room_b
                 continue
-            # Both ends of this sub-step with room for the footprint on the same (convex) cell:
-            # the samples in between are on it too.
-            region_b, room_b = _region_under(rx, ry, Rs[step + 1], Cs[step + 1], geo)
-            if region_b == region and min(room, room_b) > reach_m:
-                if region >= 0:
-                    n = _cell_run(
-                        t_steps[step],
-                        t_steps[step + 1],
-                        region,
-                        i,
-                        rx,
-                        ry,
-                        t_steps,
-                        Rs,
-                        Cs,
-                        geo,
-                        disp,
-                        rad,
-                        k_first,
-                        target,
-                        at_switch,
-                        level,
-                        ref,
-                        last,
-                        c_on,
-                        c_off,
-                        refractory,
-                        out_t,
-                        out_i,
-                        out_p,
-                        n,
-                    )
-                step += 1
-                room = room_b
-                continue
-            for q in range(s):
-                if sampled_up_to == step:  # the previous sub-step ended where this one starts
-                    p0[q, 0], p0[q, 1] = p1[q, 0], p1[q, 1]
-                else:
-                    p0[q, 0], p0[q, 1] = plane_point(
-                        rx + offsets[q, 0], ry + offsets[q, 1], Rs[step], Cs[step]
-                    )
-                p1[q, 0], p1[q, 1] = plane_point(
-                    rx + offsets[q, 0], ry + offsets[q, 1], Rs[step + 1], Cs[step + 1]
-                )
-            region = _common_region(p0, p1, geo)
-            if region >= 0:  # on one cell after all: its light alone, in closed form
-                n = _cell_run(
-                    t_steps[step],
-                    t_steps[step + 1],
-                    region,
-                    i,
+            # The content changes within this sub-step: close the run, sample the step.
+            t_a, t_b = path[step, _T], path[end, _T]
+            if t_a > t_run:
+                n = _run(
+                    t_run,
+                    t_a,
                     rx,
                     ry,
-                    t_steps,
-                    Rs,
-                    Cs,
-                    geo,
-                    disp,
-                    rad,
-                    k_first,
-                    target,
-                    at_switch,
-                    level,
-                    ref,
-                    last,
-                    c_on,
-                    c_off,
-                    refractory,
-                    out_t,
-                    out_i,
-                    out_p,
-                    n,
-                )
-            elif region == -3:
-                n = _sampled_step(
-                    t_steps[step],
-                    t_steps[step + 1],
+                    regs[0],
+                    counts[0],
+                    nd_a,
+                    path,
+                    screen,
+                    lum,
                     i,
-                    p0,
-                    p1,
-                    geo,
-                    disp,
-                    rad,
-                    k_first,
-                    target,
-                    at_switch,
-                    tau_fast,
-                    tau_slow,
-                    times,
-                    seen,
-                    level,
-                    ref,
-                    last,
-                    c_on,
-                    c_off,
-                    refractory,
-                    out_t,
-                    out_i,
-                    out_p,
+                    state,
+                    rfr,
+                    out,
                     n,
                 )
-            step += 1
-            sampled_up_to = step
-            region, room = region_b, room_b
-        if n > out_t.shape[0]:
-            ref[i], last[i], level[i] = saved
+            nd = _merge(regs, counts, nd_a, nd_b, merged, w0, w1)
+            n = _sampled_step(
+                t_a,
+                t_b,
+                _row_of(py_b, geo),
+                merged,
+                w0,
+                w1,
+                nd,
+                times,
+                screen,
+                lum,
+                i,
+                state,
+                rfr,
+                out,
+                n,
+            )
+            t_run = t_b
+            regs[0, :nd_b] = regs[1, :nd_b]
+            counts[0, :nd_b] = counts[1, :nd_b]
+            nd_a = nd_b
+            step, region, room = end, region_b, room_b
+        if path[m, _T] > t_run:
+            n = _run(
+                t_run,
+                path[m, _T],
+                rx,
+                ry,
+                regs[0],
+                counts[0],
+                nd_a,
+                path,
+                screen,
+                lum,
+                i,
+                state,
+                rfr,
+                out,
+                n,
+            )
+        if n > out.shape[0]:
+            state[REF, i], state[LAST, i], state[LEVEL, i] = saved
             return j, n_before
     return bw * (y1 - y0), n
 
 
-@numba.njit(cache=True)
-def _fill_levels(t, R, C, rays, offsets, geo, disp, rad, k_first, target, at_switch, level):
-    """Log irradiance of every pixel at time t, without events (the sensor's start state)."""
+@numba.njit(cache=True, error_model="numpy")
+def _fill_levels(path, rays, offsets, screen, lum, level):
+    """Log irradiance of every pixel at the path's start, without events (the sensor's start
+    state)."""
     h, w = rays.shape[0], rays.shape[1]
     s = offsets.shape[0]
-    p = np.empty((s, 2))
-    seen = np.empty((s, 3))
+    geo = screen[0]
+    regs = np.empty(s, np.int64)
+    counts = np.empty(s)
+    weights = np.empty(s)
     for y in range(h):
         for x in range(w):
-            for q in range(s):
-                p[q, 0], p[q, 1] = plane_point(
-                    rays[y, x, 0] + offsets[q, 0], rays[y, x, 1] + offsets[q, 1], R, C
-                )
+            rx, ry = rays[y, x, 0], rays[y, x, 1]
+            _, _, py = _centre(rx, ry, path, 0, geo)
+            nd = _content(rx, ry, path, 0, 0, False, offsets, geo, regs, counts)
+            for d in range(nd):
+                weights[d] = counts[d] / s
             level[y * w + x] = _log_irradiance(
-                0.0, t, p, p, geo, disp, rad, k_first, target, at_switch, seen
+                path[0, _T], _row_of(py, geo), 0.0, regs, weights, weights, nd, screen, lum
             )
 
 
 class MovingRenderer:
+    closed_form_runs = True
+    """Render runs of unchanged footprint in closed form (False: sample every sub-step, the
+    slow reference)."""
+
     def __init__(
         self, scene, trajectory: Trajectory, timeline: DisplayTimeline, pixels: PixelArray
     ) -> None:
@@ -560,47 +571,24 @@ class MovingRenderer:
         self.rays = centre_rays(cam, xs, ys).reshape(cam.height, cam.width, 2)
         self.offsets = sample_offsets(cam, scene.optics)
         lay, rad, d = scene.layout, scene.radiometry, timeline.display
-        self.geo = plane_geometry(lay)
         if d.pwm_hz is not None:
             raise ValueError(
                 "backlight PWM is simulated for still cameras only; give the "
                 "display pwm_hz=None to simulate a moving camera"
             )
-        self.disp = (
-            float(timeline.start_refresh),
-            d.period_us,
-            d.scan_us,
-            d.rise_ms * 1e3,
-            d.fall_ms * 1e3,
-        )
-        self.rad = (rad.screen_ambient, rad.screen_black, rad.wall, rad.dark)
+        self._geo = plane_geometry(lay)
+        self._rad = (rad.screen_ambient, rad.screen_black, rad.wall, rad.dark)
         self.outline = lay.screen_corners()
-        self.c_on, self.c_off = pixels.threshold_on, pixels.threshold_off
-        self.refractory = float(scene.sensor.refractory_us)
         self.pix_index = np.arange(cam.width * cam.height)
-        self.level = np.empty(cam.width * cam.height)
-        T0 = trajectory.pose_at(np.zeros(1))[0]
+        level = np.empty(cam.width * cam.height)
         win = timeline.window(timeline.start_refresh - 1, timeline.start_refresh)
-        _fill_levels(
-            0.0,
-            T0[:3, :3],
-            T0[:3, 3],
-            self.rays,
-            self.offsets,
-            self.geo,
-            self.disp,
-            self.rad,
-            win.k_first,
-            win.target,
-            win.at_switch,
-            self.level,
-        )
-        self.ref = self.level.copy()
-        self.last = np.full(cam.width * cam.height, -np.inf)
+        _fill_levels(self._path(np.zeros(2)), self.rays, self.offsets, *self._screen(win), level)
+        self.state = pixel_state(level, pixels.threshold_on, pixels.threshold_off)
+        self.refractory = float(scene.sensor.refractory_us)
         self._out = EventBuffer()
 
     def irradiance_now(self) -> np.ndarray:
-        return np.exp(self.level)
+        return np.exp(self.state[LEVEL])
 
     def substeps(self, t0: float, t1: float) -> np.ndarray:
         """Step boundaries in [t0, t1] keeping the screen's image motion per step small."""
@@ -613,60 +601,59 @@ class MovingRenderer:
     def window(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signal events in [t0, t1]: times (us, float), sensor pixel indices, polarities."""
         tl, d = self.timeline, self.timeline.display
-        t_steps = self.substeps(t0, t1)
-        T = self.trajectory.pose_at(t_steps)
+        path = self._path(self.substeps(t0, t1))
+        T = self.trajectory.pose_at(path[:, _T])
         box = image_box(self.camera, T, self.outline, _BOX_MARGIN_PX + 0.02 * self.camera.width)
-        reach_m, step_m = self._plane_bounds(T)
+        bounds = self._plane_bounds(T)
         settle_us = _SETTLED_TAU * max(d.rise_ms, d.fall_ms) * 1e3
-        win = tl.window(tl.refresh_at(t0 - settle_us, 1.0), tl.refresh_at(t1, 0.0))
-        Rs, Cs = np.ascontiguousarray(T[:, :3, :3]), np.ascontiguousarray(T[:, :3, 3])
-        parts = []
+        screen, lum = self._screen(
+            tl.window(tl.refresh_at(t0 - settle_us, 1.0), tl.refresh_at(t1, 0.0))
+        )
+        parts = [np.empty(0, EVENT_OUT_DTYPE)]  # the box is empty when the screen is out of view
         j, total = 0, (box[1] - box[0]) * (box[3] - box[2])
         while j < total:
-            out_t, out_i, out_p = self._out.get()
+            out = self._out.get()
             j_next, n = _moving_window(
-                t_steps,
-                Rs,
-                Cs,
+                path,
                 box,
                 j,
-                reach_m,
-                step_m,
+                bounds,
+                self.closed_form_runs,
                 self.rays,
                 self.offsets,
-                self.geo,
-                self.disp,
-                self.rad,
-                win.k_first,
-                win.target,
-                win.at_switch,
-                self.level,
-                self.ref,
-                self.last,
-                self.c_on,
-                self.c_off,
+                screen,
+                lum,
+                self.state,
                 self.refractory,
-                out_t,
-                out_i,
-                out_p,
+                out,
             )
-            parts.append((out_t[:n].copy(), out_i[:n].copy(), out_p[:n].copy()))
+            parts.append(out[:n].copy())
             if j_next < total:
                 self._out.grow()
             j = j_next
-        if not parts:
-            return np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int8)
-        return tuple(np.concatenate(c) for c in zip(*parts, strict=True))
+        events = np.concatenate(parts)
+        return events["t"], events["i"], events["p"]
+
+    def _path(self, t_steps: np.ndarray) -> np.ndarray:
+        return np.column_stack([flat_poses(self.trajectory.pose_at(t_steps)), t_steps])
+
+    def _screen(self, win) -> tuple[tuple, np.ndarray]:
+        """``screen`` and ``lum`` (see the kernels' conventions) of a timeline window."""
+        d = self.timeline.display
+        first = float(self.timeline.start_refresh - win.k_first)
+        disp = (d.period_us, d.scan_us, d.rise_ms * 1e3, d.fall_ms * 1e3, first)
+        return (self._geo, disp, self._rad), np.stack([win.target, win.at_switch])
 
     def _plane_bounds(self, T: np.ndarray) -> tuple[float, float]:
-        """Upper bounds, on the marker plane, of a pixel footprint's reach from its centre
-        point and of that point's travel in one sub-step, with a safety factor for lens
-        distortion and for the variation over the screen (the bounds are taken at its corners,
-        where the view is most oblique and distant)."""
+        """Upper bounds, on the marker plane, of how far a pixel's footprint samples lie from its
+        centre point along either plane axis (regions are axis-aligned boxes, so that is the
+        distance that matters) and of how far that point moves in one sub-step, with a safety
+        factor for lens distortion and for the variation over the screen (the bounds are taken
+        at its corners, where the view is most oblique and distant)."""
         px = project_points(self.camera, T, self.outline)  # (steps, 4, 2)
         step_px = float(np.linalg.norm(np.diff(px, axis=0), axis=2).max(initial=0.0))
         K = self.camera.K
-        m_per_px = 0.0
+        m_per_px = reach_m = 0.0
         for Ti, corners in zip(T[[0, -1]], px[[0, -1]], strict=True):
             rays = (corners - K[:2, 2]) / K[[0, 1], [0, 1]]
             centre = rays_to_plane(rays, Ti)
@@ -675,8 +662,8 @@ class MovingRenderer:
                 m_per_px = max(
                     m_per_px, float(np.nanmax(np.linalg.norm(moved - centre, axis=1), initial=0.0))
                 )
+            samples = rays_to_plane(rays[:, None, :] + self.offsets[None], Ti)
+            reach_m = max(reach_m, float(np.nanmax(np.abs(samples - centre[:, None]), initial=0)))
         if not m_per_px > 0:  # the screen is (partly) behind the camera: sample every pixel
             return math.inf, 1.0
-        reach_px = float(np.linalg.norm(self.offsets * K[[0, 1], [0, 1]], axis=1).max())
-        scale = _BOUND_SAFETY * m_per_px
-        return scale * reach_px, max(scale * step_px, 1e-9)
+        return _BOUND_SAFETY * reach_m, max(_BOUND_SAFETY * m_per_px * step_px, 1e-9)

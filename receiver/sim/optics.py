@@ -3,7 +3,8 @@
 A pixel's irradiance is the mean scene luminance over a small grid of sample rays around its
 centre. The grid spacing is chosen so the grid's spatial variance equals that of the pixel's
 square aperture (1/12 px² per axis) convolved with a Gaussian lens blur: the cheapest footprint
-with the right width, evaluated identically for still and moving cameras.
+with the right width, the same for still and moving cameras (a moving camera places the samples
+with the ray-to-plane map linearised at the pixel centre, which moves them by ~1e-3 px).
 """
 
 from __future__ import annotations
@@ -62,31 +63,43 @@ def sample_rays(camera: CameraModel, optics: Optics, x: np.ndarray, y: np.ndarra
     return centre_rays(camera, x, y)[:, None, :] + sample_offsets(camera, optics)[None]
 
 
+POSE_R, POSE_C = 0, 9
+"""Columns of a flat pose (``flat_poses``): R row-major from ``POSE_R``, C from ``POSE_C``."""
+
+
+def flat_poses(T_world_cam: np.ndarray) -> np.ndarray:
+    """(n, 12) rows ``[R row-major, C]`` of poses T_world_cam (n, 4, 4) or (4, 4): the layout
+    ``plane_point`` reads (one array, which numba passes cheaply)."""
+    T = np.asarray(T_world_cam, dtype=np.float64).reshape(-1, 4, 4)
+    return np.ascontiguousarray(np.column_stack([T[:, :3, :3].reshape(-1, 9), T[:, :3, 3]]))
+
+
 def rays_to_plane(rays: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
     """(..., 2) marker-plane points (z = 0) hit by normalised rays (..., 2); NaN where a ray
     misses the plane (points behind the camera)."""
     rays = np.asarray(rays, dtype=np.float64)
     flat = np.ascontiguousarray(rays.reshape(-1, 2))
-    T = np.ascontiguousarray(T_world_cam, dtype=np.float64)
-    return _rays_to_plane(flat, T[:3, :3].copy(), T[:3, 3].copy()).reshape(rays.shape)
+    return _rays_to_plane(flat, flat_poses(T_world_cam)).reshape(rays.shape)
 
 
 @numba.njit(cache=True, inline="always")
-def plane_point(rx, ry, R, C):
-    """Marker-plane point (x, y) hit by the normalised ray (rx, ry) of a camera with rotation
-    ``R`` and centre ``C`` (world frame); NaN if the ray misses the plane."""
-    dx = R[0, 0] * rx + R[0, 1] * ry + R[0, 2]
-    dy = R[1, 0] * rx + R[1, 1] * ry + R[1, 2]
-    dz = R[2, 0] * rx + R[2, 1] * ry + R[2, 2]
-    s = -C[2] / dz if dz != 0.0 else -1.0
-    if s <= 0.0:
+def plane_point(rx, ry, poses, s):
+    """Marker-plane point (x, y) hit by the normalised ray (rx, ry) of the camera at row ``s``
+    of ``poses`` (``flat_poses``, or any array whose first columns are laid out so); NaN if the
+    ray misses the plane."""
+    r, c = POSE_R, POSE_C
+    dx = poses[s, r] * rx + poses[s, r + 1] * ry + poses[s, r + 2]
+    dy = poses[s, r + 3] * rx + poses[s, r + 4] * ry + poses[s, r + 5]
+    dz = poses[s, r + 6] * rx + poses[s, r + 7] * ry + poses[s, r + 8]
+    d = -poses[s, c + 2] / dz if dz != 0.0 else -1.0
+    if d <= 0.0:
         return np.nan, np.nan
-    return C[0] + s * dx, C[1] + s * dy
+    return poses[s, c] + d * dx, poses[s, c + 1] + d * dy
 
 
 @numba.njit(cache=True)
-def _rays_to_plane(rays, R, C):
+def _rays_to_plane(rays, poses):
     out = np.empty_like(rays)
     for j in range(rays.shape[0]):
-        out[j, 0], out[j, 1] = plane_point(rays[j, 0], rays[j, 1], R, C)
+        out[j, 0], out[j, 1] = plane_point(rays[j, 0], rays[j, 1], poses, 0)
     return out

@@ -23,7 +23,15 @@ import numba
 import numpy as np
 
 from receiver.sim.display import DisplayTimeline, ScreenLayout
-from receiver.sim.sensor import EventBuffer, cross_exponential, cross_linear
+from receiver.sim.sensor import (
+    LAST,
+    LEVEL,
+    REF,
+    EventBuffer,
+    cross_exponential,
+    cross_linear,
+    pixel_state,
+)
 
 SCREEN, WALL = -1, -2
 _LADDER_START = 1e-3
@@ -31,6 +39,11 @@ _LADDER_START = 1e-3
 _LADDER_RATIO = 1.5
 _SETTLED = 12.0
 """Time constants after which a transition counts as finished."""
+SETTLED_CONTRAST = 1e-3
+"""A cell whose level at a switch is within this fraction of its new target does not switch:
+what is left of its transition moves a pixel's log irradiance by less than a tenth of the
+smallest threshold, and skipping it spares a slow exponential (a pixel that mixes a rising and a
+falling cell has no closed form)."""
 
 
 @dataclass(frozen=True)
@@ -146,15 +159,9 @@ def _static_window(
     tau_fall,
     pwm,
     next_switch,
-    level,
-    ref,
-    last,
-    c_on,
-    c_off,
+    state,
     refractory,
-    out_t,
-    out_i,
-    out_p,
+    out,
 ):
     """Events of the still-camera pixels ``j_start ..`` from their next display switch on, one
     whole refresh at a time, for every switch before ``t1`` (events may run up to a refresh
@@ -165,7 +172,7 @@ def _static_window(
     for j in range(j_start, pix_v.shape[0]):
         if next_switch[j] >= t1:
             continue  # this pixel's light is settled or already rendered beyond t1
-        saved = (ref[j], last[j], level[j], next_switch[j])
+        saved = (state[REF, j], state[LAST, j], state[LEVEL, j], next_switch[j])
         n_before = n
         while next_switch[j] < t1:
             ts = next_switch[j]
@@ -180,7 +187,7 @@ def _static_window(
                 lum_end = target[kk, c]
                 lum_start = at_switch[kk, c]
                 a += w * lum_end
-                if abs(lum_start - lum_end) <= 1e-9 * lum_end:
+                if abs(lum_start - lum_end) <= SETTLED_CONTRAST * lum_end:
                     continue
                 if lum_end > lum_start:
                     if tau_rise > 0:
@@ -199,20 +206,14 @@ def _static_window(
                 tau_fall,
                 pwm,
                 j,
-                level,
-                ref,
-                last,
-                c_on,
-                c_off,
+                state,
                 refractory,
-                out_t,
-                out_i,
-                out_p,
+                out,
                 n,
             )
             next_switch[j] = ts + period
-        if n > out_t.shape[0]:
-            ref[j], last[j], level[j], next_switch[j] = saved
+        if n > out.shape[0]:
+            state[REF, j], state[LAST, j], state[LEVEL, j], next_switch[j] = saved
             return j, n_before
     return pix_v.shape[0], n
 
@@ -240,15 +241,9 @@ def render_segment(
     tau_fall,
     pwm,
     j,
-    level,
-    ref,
-    last,
-    c_on,
-    c_off,
+    state,
     refractory,
-    out_t,
-    out_i,
-    out_p,
+    out,
     n,
 ):
     """Events of pixel ``j`` over [t0 + ua, t0 + ub] after a display switch at ``t0``: its
@@ -267,15 +262,9 @@ def render_segment(
             b_fall,
             tau_fall,
             j,
-            level,
-            ref,
-            last,
-            c_on,
-            c_off,
+            state,
             refractory,
-            out_t,
-            out_i,
-            out_p,
+            out,
             n,
         )
     cycle = math.floor((t0 + ua) / period)  # counted in whole cycles: always moves on
@@ -295,15 +284,9 @@ def render_segment(
                 b_fall,
                 tau_fall,
                 j,
-                level,
-                ref,
-                last,
-                c_on,
-                c_off,
+                state,
                 refractory,
-                out_t,
-                out_i,
-                out_p,
+                out,
                 n,
             )
         lo, hi = max(start + on_us, ua), min(start + period, ub)
@@ -312,28 +295,20 @@ def render_segment(
                 t0 + lo,
                 math.log(a_off),
                 j,
-                level,
-                ref,
-                last,
-                c_on,
-                c_off,
+                state,
                 refractory,
-                out_t,
-                out_i,
-                out_p,
+                out,
                 n,
             )
         cycle += 1
 
 
 @numba.njit(cache=True, inline="always")
-def _step_to(t, value, j, level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n):
+def _step_to(t, value, j, state, refractory, out, n):
     """An instantaneous change of pixel ``j``'s log irradiance to ``value`` at time t."""
-    if value != level[j]:
-        n = cross_linear(
-            t, level[j], t, value, j, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
-        )
-        level[j] = value
+    if value != state[LEVEL, j]:
+        n = cross_linear(t, state[LEVEL, j], t, value, j, state, refractory, out, n)
+        state[LEVEL, j] = value
     return n
 
 
@@ -348,15 +323,9 @@ def _lit_piece(
     b_fall,
     tau_fall,
     j,
-    level,
-    ref,
-    last,
-    c_on,
-    c_off,
+    state,
     refractory,
-    out_t,
-    out_i,
-    out_p,
+    out,
     n,
 ):
     """``render_segment`` over [ua, ub] with the backlight on throughout."""
@@ -367,32 +336,12 @@ def _lit_piece(
             lum += b_rise * math.exp(-ua / tau_rise)
         if b_fall != 0.0:
             lum += b_fall * math.exp(-ua / tau_fall)
-    n = _step_to(
-        t0 + ua, math.log(lum), j, level, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
-    )
+    n = _step_to(t0 + ua, math.log(lum), j, state, refractory, out, n)
     if b_rise == 0.0 and b_fall == 0.0:
         return n
     if b_fall == 0.0 or b_rise == 0.0 or tau_rise == tau_fall:
         tau = tau_rise if b_rise != 0.0 else tau_fall
-        n, level[j] = cross_exponential(
-            t0,
-            ua,
-            ub,
-            a,
-            b_rise + b_fall,
-            tau,
-            j,
-            ref,
-            last,
-            c_on,
-            c_off,
-            refractory,
-            out_t,
-            out_i,
-            out_p,
-            n,
-        )
-        return n
+        return cross_exponential(t0, ua, ub, a, b_rise + b_fall, tau, j, state, refractory, out, n)
     return _cross_two_exponentials(
         t0,
         ua,
@@ -403,15 +352,9 @@ def _lit_piece(
         b_fall,
         tau_fall,
         j,
-        level,
-        ref,
-        last,
-        c_on,
-        c_off,
+        state,
         refractory,
-        out_t,
-        out_i,
-        out_p,
+        out,
         n,
     )
 
@@ -427,15 +370,9 @@ def _cross_two_exponentials(
     b2,
     tau2,
     j,
-    level,
-    ref,
-    last,
-    c_on,
-    c_off,
+    state,
     refractory,
-    out_t,
-    out_i,
-    out_p,
+    out,
     n,
 ):
     """Level crossings of ``a + b1 exp(-u/tau1) + b2 exp(-u/tau2)`` over [ua, ub], linearly
@@ -444,16 +381,14 @@ def _cross_two_exponentials(
     u_next = _LADDER_START * min(tau1, tau2)
     while u_next <= ua:
         u_next *= _LADDER_RATIO
-    u, lu = ua, level[j]
+    u, lu = ua, state[LEVEL, j]
     while u < end:
         un = min(u_next, end)
         ln = math.log(a + b1 * math.exp(-un / tau1) + b2 * math.exp(-un / tau2))
-        n = cross_linear(
-            t0 + u, lu, t0 + un, ln, j, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
-        )
+        n = cross_linear(t0 + u, lu, t0 + un, ln, j, state, refractory, out, n)
         u, lu = un, ln
         u_next *= _LADDER_RATIO
-    level[j] = lu
+    state[LEVEL, j] = lu
     return n
 
 
@@ -488,8 +423,6 @@ class StaticRenderer:
         )
         self.pix_v = screen_fraction(sample_points, layout).mean(axis=1)
         self.timeline = timeline
-        self.c_on, self.c_off = c_on[self.pix_index], c_off[self.pix_index]
-        self.refractory = float(refractory_us)
         d = timeline.display
         self._tau = (d.rise_ms * 1e3, d.fall_ms * 1e3)
         self._pwm = d.backlight_us()
@@ -501,16 +434,17 @@ class StaticRenderer:
             np.repeat(np.arange(len(lum)), np.diff(self.ptr)),
             self.weights * first.target[0, self.cells],
         )
-        self.level = np.log(self.pix_const + lum)
-        self.ref = self.level.copy()
-        self.last = np.full(len(lum), -np.inf)
+        self.state = pixel_state(
+            np.log(self.pix_const + lum), c_on[self.pix_index], c_off[self.pix_index]
+        )
+        self.refractory = float(refractory_us)
         # Refresh start_refresh reaches each pixel's screen row at its scan-out delay.
         self.next_switch = self.pix_v * d.scan_us
         self._out = EventBuffer()
 
     def irradiance_now(self) -> np.ndarray:
         """Current irradiance (dark floor included) of the rendered pixels."""
-        return np.exp(self.level)
+        return np.exp(self.state[LEVEL])
 
     def window(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signal events of the display switches in [t0, t1): times (us, float; up to a refresh
@@ -521,7 +455,7 @@ class StaticRenderer:
         parts_t, parts_i, parts_p = [np.zeros(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
         j = 0
         while j < len(self.pix_index):
-            out_t, out_i, out_p = self._out.get()
+            out = self._out.get()
             j_next, n = _static_window(
                 float(t1),
                 j,
@@ -539,19 +473,13 @@ class StaticRenderer:
                 *self._tau,
                 self._pwm,
                 self.next_switch,
-                self.level,
-                self.ref,
-                self.last,
-                self.c_on,
-                self.c_off,
+                self.state,
                 self.refractory,
-                out_t,
-                out_i,
-                out_p,
+                out,
             )
-            parts_t.append(out_t[:n].copy())
-            parts_i.append(self.pix_index[out_i[:n]])
-            parts_p.append(out_p[:n].copy())
+            parts_t.append(out["t"][:n].copy())
+            parts_i.append(self.pix_index[out["i"][:n]])
+            parts_p.append(out["p"][:n].copy())
             if j_next < len(self.pix_index):
                 self._out.grow()
             j = j_next

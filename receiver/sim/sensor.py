@@ -138,80 +138,88 @@ class PixelArray:
 
 
 # --- level crossings (numba) -----------------------------------------------------------------
-# Kernel state per pixel: ``ref`` (reference log level) and ``last`` (time of the last emitted
-# event). Events are written to ``out_t`` / ``out_i`` (pixel index) / ``out_p`` up to their
-# capacity; the returned count may exceed it, and the caller then reruns with more room.
+
+
+LEVEL, REF, LAST, C_ON, C_OFF = range(5)
+"""Rows of the per-pixel state the level-crossing kernels update: log irradiance rendered so far,
+reference log level (events fire when the level moves a threshold away from it), time (us) of
+the last event (the refractory period counts from it), ON and OFF thresholds. One 2-D array
+rather than five: numba passes each array argument at a cost, and the kernels nest deeply."""
+
+EVENT_OUT_DTYPE = np.dtype([("t", np.float64), ("i", np.int64), ("p", np.int8)])
+"""What the kernels write per event: time (us, float), pixel index, polarity."""
+
+
+def pixel_state(level: np.ndarray, c_on: np.ndarray, c_off: np.ndarray) -> np.ndarray:
+    """State of pixels that have seen ``level`` for ever: reference there, no event yet."""
+    return np.stack([level, level, np.full(len(level), -np.inf), c_on, c_off])
 
 
 class EventBuffer:
-    """Output arrays the kernels fill, reused from window to window (fresh multi-megabyte
-    arrays would cost a page fault per 4 KiB on every window); ``grow`` when a kernel reports
-    that they were too small."""
+    """Output array the kernels fill (``EVENT_OUT_DTYPE``), reused from window to window (a
+    fresh multi-megabyte array would cost a page fault per 4 KiB on every window). Kernels
+    return the event count, which may exceed the capacity: then ``grow`` and rerun."""
 
     def __init__(self, capacity: int = 1 << 18) -> None:
-        self._arrays = self._allocate(capacity)
+        self._out = np.empty(capacity, EVENT_OUT_DTYPE)
 
-    @staticmethod
-    def _allocate(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return np.empty(capacity), np.empty(capacity, np.int64), np.empty(capacity, np.int8)
-
-    def get(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(times, pixel indices, polarities), to be copied out before the next ``get``."""
-        return self._arrays
+    def get(self) -> np.ndarray:
+        """The output array, to be copied out before the next ``get``."""
+        return self._out
 
     def grow(self) -> None:
-        self._arrays = self._allocate(2 * len(self._arrays[0]))
+        self._out = np.empty(2 * len(self._out), EVENT_OUT_DTYPE)
 
 
 @numba.njit(cache=True, inline="always")
-def _emit(t, i, p, last, refractory, out_t, out_i, out_p, n):
-    if t - last[i] >= refractory:
-        last[i] = t
-        if n < out_t.shape[0]:
-            out_t[n] = t
-            out_i[n] = i
-            out_p[n] = p
+def _emit(t, i, p, state, refractory, out, n):
+    if t - state[LAST, i] >= refractory:
+        state[LAST, i] = t
+        if n < out.shape[0]:
+            e = out[n]
+            e.t = t
+            e.i = i
+            e.p = p
         return n + 1
     return n
 
 
 @numba.njit(cache=True)
-def cross_linear(ta, la, tb, lb, i, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n):
+def cross_linear(ta, la, tb, lb, i, state, refractory, out, n):
     """Events of pixel ``i`` while its log intensity goes linearly from ``la`` at ``ta`` to
     ``lb`` at ``tb`` (``ta == tb``: a step, every event at that instant)."""
     dl = lb - la
-    while lb >= ref[i] + c_on[i]:
-        level = ref[i] + c_on[i]
+    while lb >= state[REF, i] + state[C_ON, i]:
+        level = state[REF, i] + state[C_ON, i]
         t = tb if dl == 0.0 else ta + (level - la) / dl * (tb - ta)
-        n = _emit(min(max(t, ta), tb), i, 1, last, refractory, out_t, out_i, out_p, n)
-        ref[i] = level
-    while lb <= ref[i] - c_off[i]:
-        level = ref[i] - c_off[i]
+        n = _emit(min(max(t, ta), tb), i, 1, state, refractory, out, n)
+        state[REF, i] = level
+    while lb <= state[REF, i] - state[C_OFF, i]:
+        level = state[REF, i] - state[C_OFF, i]
         t = tb if dl == 0.0 else ta + (level - la) / dl * (tb - ta)
-        n = _emit(min(max(t, ta), tb), i, -1, last, refractory, out_t, out_i, out_p, n)
-        ref[i] = level
+        n = _emit(min(max(t, ta), tb), i, -1, state, refractory, out, n)
+        state[REF, i] = level
     return n
 
 
 @numba.njit(cache=True)
-def cross_exponential(
-    t0, ua, ub, a, b, tau, i, ref, last, c_on, c_off, refractory, out_t, out_i, out_p, n
-):
+def cross_exponential(t0, ua, ub, a, b, tau, i, state, refractory, out, n):
     """Events of pixel ``i`` whose irradiance (dark floor included) is ``a + b exp(-u / tau)``
-    at ``t0 + u``, for ``u`` from ``ua`` to ``ub``; crossing times are exact. Returns the
-    event count and the log level at ``ub``."""
+    at ``t0 + u``, for ``u`` from ``ua`` to ``ub``; crossing times are exact. Leaves the log
+    level at ``ub`` in the state."""
     lb = math.log(a + b * math.exp(-ub / tau))
-    while lb >= ref[i] + c_on[i]:
-        level = ref[i] + c_on[i]
+    while lb >= state[REF, i] + state[C_ON, i]:
+        level = state[REF, i] + state[C_ON, i]
         u = -tau * math.log((math.exp(level) - a) / b)
-        n = _emit(t0 + min(max(u, ua), ub), i, 1, last, refractory, out_t, out_i, out_p, n)
-        ref[i] = level
-    while lb <= ref[i] - c_off[i]:
-        level = ref[i] - c_off[i]
+        n = _emit(t0 + min(max(u, ua), ub), i, 1, state, refractory, out, n)
+        state[REF, i] = level
+    while lb <= state[REF, i] - state[C_OFF, i]:
+        level = state[REF, i] - state[C_OFF, i]
         u = -tau * math.log((math.exp(level) - a) / b)
-        n = _emit(t0 + min(max(u, ua), ub), i, -1, last, refractory, out_t, out_i, out_p, n)
-        ref[i] = level
-    return n, lb
+        n = _emit(t0 + min(max(u, ua), ub), i, -1, state, refractory, out, n)
+        state[REF, i] = level
+    state[LEVEL, i] = lb
+    return n
 
 
 # --- noise, delay, readout (numpy, per chunk) --------------------------------------------------
