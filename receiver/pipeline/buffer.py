@@ -58,16 +58,16 @@ class EventColumns:
 
 
 @numba.njit(cache=True, nogil=True)
-def _columns(t, x, y, p, table):
-    """One pass over the (strided) fields of a structured array: contiguous copies plus the
-    ideal coordinates looked up in the undistortion table."""
-    n = t.shape[0]
+def _columns(events, index, table):
+    """One pass over the records (all, or those at ``index``): contiguous columns plus the ideal
+    coordinates looked up in the undistortion table."""
+    n = events.shape[0] if index is None else index.shape[0]
     ct, cx, cy = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16)
     cp, xu, yu = np.empty(n, np.int8), np.empty(n, np.float32), np.empty(n, np.float32)
-    for i in range(n):
-        ct[i], cx[i], cy[i], cp[i] = t[i], x[i], y[i], p[i]
-        xu[i] = table[y[i], x[i], 0]
-        yu[i] = table[y[i], x[i], 1]
+    for k in range(n):
+        e = events[k] if index is None else events[index[k]]
+        ct[k], cx[k], cy[k], cp[k] = e.t, e.x, e.y, e.p
+        xu[k], yu[k] = table[e.y, e.x, 0], table[e.y, e.x, 1]
     return ct, cx, cy, cp, xu, yu
 
 
@@ -85,11 +85,12 @@ def first_at(t: np.ndarray, value: int) -> int:
     return lo
 
 
-def to_columns(events: np.ndarray, undistort_table: np.ndarray) -> EventColumns:
-    """Structured events (``EVENT_DTYPE``) as columns with their ideal coordinates."""
-    return EventColumns(
-        *_columns(events["t"], events["x"], events["y"], events["p"], undistort_table)
-    )
+def to_columns(
+    events: np.ndarray, undistort_table: np.ndarray, index: np.ndarray | None = None
+) -> EventColumns:
+    """Structured events (``EVENT_DTYPE``), all or those at ``index``, as columns with their
+    ideal coordinates."""
+    return EventColumns(*_columns(events, index, undistort_table))
 
 
 class EventBuffer:

@@ -75,27 +75,41 @@ def _residuals(R, t, k, pts, edge, ends, huber, want_jac):
     b_px = np.empty((ends.shape[0], 2))
     Ja = np.empty((ends.shape[0], 2, 6))
     Jb = np.empty((ends.shape[0], 2, 6))
+    length, length3 = np.empty(ends.shape[0]), np.empty(ends.shape[0])  # per edge, not point
+    J = np.empty(6)
     for e in range(ends.shape[0]):
         a_px[e], Ja[e] = _project_with_jacobian(ends[e, 0], R, t, k)
         b_px[e], Jb[e] = _project_with_jacobian(ends[e, 1], R, t, k)
+        dx, dy = b_px[e, 0] - a_px[e, 0], b_px[e, 1] - a_px[e, 1]
+        length[e] = np.sqrt(dx * dx + dy * dy) + 1e-12
+        length3[e] = length[e] * length[e] * length[e]
     for i in range(n):
         e = edge[i]
         ax, ay, bx, by = a_px[e, 0], a_px[e, 1], b_px[e, 0], b_px[e, 1]
         px, py = pts[i, 0], pts[i, 1]
         dx, dy = bx - ax, by - ay
-        L = np.sqrt(dx * dx + dy * dy) + 1e-12
+        L = length[e]
         c = dx * (py - ay) - dy * (px - ax)
         r = c / L
         ar = abs(r)
         w = 1.0 if ar <= huber else huber / ar
         cost += 0.5 * r * r if ar <= huber else huber * (ar - 0.5 * huber)
         if want_jac:
-            s = c / (L * L * L)
-            dra = np.array([(by - py) / L + s * dx, (px - bx) / L + s * dy])
-            drb = np.array([(py - ay) / L - s * dx, -(px - ax) / L - s * dy])
-            J = dra @ Ja[e] + drb @ Jb[e]
-            H += w * np.outer(J, J)
-            g += w * r * J
+            # Scalar loops, not small-array expressions: those allocate per point.
+            s = c / length3[e]
+            dra0, dra1 = (by - py) / L + s * dx, (px - bx) / L + s * dy
+            drb0, drb1 = (py - ay) / L - s * dx, -(px - ax) / L - s * dy
+            for j in range(6):
+                J[j] = (dra0 * Ja[e, 0, j] + dra1 * Ja[e, 1, j]) + (
+                    drb0 * Jb[e, 0, j] + drb1 * Jb[e, 1, j]
+                )
+            for j in range(6):
+                g[j] += w * r * J[j]
+                for m in range(j, 6):
+                    H[j, m] += w * (J[j] * J[m])
+    for j in range(6):  # the lower triangle mirrors the upper one
+        for m in range(j):
+            H[j, m] = H[m, j]
     return cost, H, g
 
 
@@ -108,10 +122,10 @@ def _lm(R, t, k, pts, edge, ends, huber, iterations):
         step = -np.linalg.solve(A, g)
         dR = _so3_exp(step[:3])
         R_new, t_new = dR @ R, dR @ t + step[3:]
-        new_cost, _, _ = _residuals(R_new, t_new, k, pts, edge, ends, huber, False)
+        # One pass for the cost and the next normal equations: most steps are taken.
+        new_cost, H_new, g_new = _residuals(R_new, t_new, k, pts, edge, ends, huber, True)
         if new_cost < cost:
-            R, t = R_new, t_new
-            cost, H, g = _residuals(R, t, k, pts, edge, ends, huber, True)
+            R, t, cost, H, g = R_new, t_new, new_cost, H_new, g_new
             lam = max(lam / 10, 1e-7)
             if np.abs(step).max() < 1e-7:
                 break

@@ -64,6 +64,31 @@ def _nearest_edge(xu, yu, a, b):
 
 
 @numba.njit(cache=True, nogil=True)
+def _capture_points(xu, yu, a, b, gate, deep_px, centre):
+    """(whether it counts, nearest edge) of every point for a capture pass: it counts within
+    its nearest edge's ``gate``, except more than ``deep_px`` on the centre side of an outer edge
+    (4..7), which is nearer the ring's inner edge or the blinking locator than it looks."""
+    dist, edge = _nearest_edge(xu, yu, a, b)
+    near = np.empty(xu.shape[0], np.bool_)
+    for i in range(xu.shape[0]):
+        e = edge[i]
+        near[i] = dist[i] <= gate[e]
+        if near[i] and e >= 4 and dist[i] > deep_px[e]:
+            dx, dy = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+            side = dx * (yu[i] - a[e, 1]) - dy * (xu[i] - a[e, 0])
+            ref = dx * (centre[1] - a[e, 1]) - dy * (centre[0] - a[e, 0])
+            near[i] = not side * ref > 0
+    return near, edge
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _late(sum_d, n_valid, cap, gate, min_fill):
+    """An edge's latency indicator fired: its cluster is filled enough and lies, on average,
+    more than half the gate off the edge."""
+    return n_valid >= max(3, min_fill * cap) and sum_d > 0.5 * gate * n_valid
+
+
+@numba.njit(cache=True, nogil=True)
 def _assign(
     xu,
     yu,
@@ -90,10 +115,27 @@ def _assign(
     the first event that makes more than one indicator exceed half its gate (at or after
     ``due_us``), or at ``force_us`` once new events joined. Returns (index to resume from,
     whether it stopped)."""
+    # A point is never nearer a segment than the segment's line, so a cross product per edge
+    # rules out most of the eight before the exact distance (a division and a square root):
+    # first for the gate, then, only if no edge took the point, for the band.
+    m = a.shape[0]
+    dx, dy = np.empty(m), np.empty(m)
+    gate_far2, band_far2 = np.empty(m), np.empty(m)
+    late = np.zeros(m, np.bool_)
+    for e in range(m):
+        dx[e], dy[e] = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+        L2 = dx[e] * dx[e] + dy[e] * dy[e]
+        gate_far2[e] = (gate[e] * (1 + 1e-6)) ** 2 * L2  # the margin covers rounding
+        band_far2[e] = (band[e] * (1 + 1e-6)) ** 2 * L2
+        late[e] = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
+    n_late = late.sum()  # kept up to date as events join, instead of recounted per event
     for i in range(start, t.shape[0]):
         px, py = xu[i], yu[i]
         near, on = False, False
-        for e in range(a.shape[0]):
+        for e in range(m):
+            cross = dx[e] * (py - a[e, 1]) - dy[e] * (px - a[e, 0])
+            if cross * cross > gate_far2[e]:
+                continue
             d, w = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
             near = near or d <= band[e]
             if d > gate[e]:
@@ -106,23 +148,60 @@ def _assign(
                 n_valid[e] += 1
             sx[e, s], sy[e, s], st[e, s], sd[e, s] = px, py, t[i], d
             sum_d[e] += d
+            now_late = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
+            n_late += now_late - late[e]
+            late[e] = now_late
+        for e in range(m):
+            if near:
+                break
+            cross = dx[e] * (py - a[e, 1]) - dy[e] * (px - a[e, 0])
+            if cross * cross <= band_far2[e]:
+                d, _ = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+                near = d <= band[e]
         if near:
             fit[0] += 1
             fit[1] += on
         fit[2] += on
         if t[i] >= force_us and fit[2] >= _FORCE_MIN_NEW:
             return i + 1, True
-        if t[i] >= due_us:
-            late = 0
-            for e in range(a.shape[0]):
-                if (
-                    n_valid[e] >= max(3, min_fill * cap[e])
-                    and sum_d[e] > 0.5 * gate[e] * n_valid[e]
-                ):
-                    late += 1
-            if late > 1:
-                return i + 1, True
+        if t[i] >= due_us and n_late > 1:
+            return i + 1, True
     return t.shape[0], False
+
+
+@numba.njit(cache=True, nogil=True)
+def _reassign(old_x, old_y, old_t, since_us, a, b, gate, band, cap, sx, sy, st, sd, sum_d, n_valid):
+    """Move the old clusters' events not older than ``since_us`` into the new (empty) clusters,
+    each edge's oldest first so that the newest wins its bin, and each only onto the edge it was
+    on. The re-binned events were counted in the fit already."""
+    unused = np.zeros(3, np.int64)
+    for e in range(old_t.shape[0]):
+        keep = np.flatnonzero(old_t[e] >= since_us)
+        if keep.shape[0] == 0:
+            continue
+        order = keep[np.argsort(old_t[e][keep], kind="mergesort")]
+        one = slice(e, e + 1)
+        _assign(
+            old_x[e][order],
+            old_y[e][order],
+            old_t[e][order],
+            0,
+            a[one],
+            b[one],
+            gate[one],
+            band[one],
+            cap[one],
+            sx[one],
+            sy[one],
+            st[one],
+            sd[one],
+            sum_d[one],
+            n_valid[one],
+            unused,
+            1 << 62,
+            1 << 62,
+            _MIN_FILL,
+        )
 
 
 @dataclass
@@ -141,6 +220,7 @@ class EdgeTracker:
         geo = config.geometry
         self.edges_world = geo.tracked_edges(config.marker_size_m)
         self._ring_m = geo.ring * geo.cell_size_m(config.marker_size_m)
+        self._world_len = np.linalg.norm(self.edges_world[:, 1] - self.edges_world[:, 0], axis=1)
         self.K = config.camera.K
         self.T_cam_world = T_cam_world
         self.last_update_us = now_us
@@ -158,8 +238,7 @@ class EdgeTracker:
 
     def _ring_px(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Width of the white ring in the image along each edge."""
-        world_len = np.linalg.norm(self.edges_world[:, 1] - self.edges_world[:, 0], axis=1)
-        return np.linalg.norm(b - a, axis=1) * self._ring_m / world_len
+        return np.linalg.norm(b - a, axis=1) * self._ring_m / self._world_len
 
     def _gates(self, ring_px: np.ndarray) -> np.ndarray:
         """theta_d, narrowed where the ring is thin in the image so that the blinking inner
@@ -185,36 +264,8 @@ class EdgeTracker:
         self._last_rebin_us = now_us
         if old is None:
             return
-        valid = old[2] >= max(0, now_us - self.config.tracker.max_age_us)
-        order = np.argsort(old[2][valid], kind="stable")  # oldest first: newest wins its bin
-        ex, ey, et = old[0][valid][order], old[1][valid][order], old[2][valid][order]
-        on_edge = np.nonzero(valid)[0][order]
-        unused = np.zeros(3, np.int64)  # re-binned events were counted in the fit already
-        for e in range(8):  # re-assign per edge so an event keeps only the edge it was on
-            on = on_edge == e
-            if np.any(on):
-                one = slice(e, e + 1)
-                _assign(
-                    ex[on],
-                    ey[on],
-                    et[on],
-                    0,
-                    a[one],
-                    b[one],
-                    self._gate[one],
-                    self._band[one],
-                    cap[one],
-                    sx[one],
-                    sy[one],
-                    st[one],
-                    sd[one],
-                    self._slots[4][one],
-                    self._slots[5][one],
-                    unused,
-                    1 << 62,
-                    1 << 62,
-                    _MIN_FILL,
-                )
+        since = max(0, now_us - self.config.tracker.max_age_us)
+        _reassign(old[0], old[1], old[2], since, a, b, self._gate, self._band, cap, *self._slots)
 
     # --- start ---------------------------------------------------------------------------------
     def capture(self, xu: np.ndarray, yu: np.ndarray, now_us: int) -> bool:
@@ -227,15 +278,9 @@ class EdgeTracker:
             a, b = self._project_edges(T)
             if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
                 return False
-            dist, edge = _nearest_edge(xu.astype(np.float64), yu.astype(np.float64), a, b)
             ring_px = self._ring_px(a, b)
             gate = scale * ring_px if scale else self._gates(ring_px)
-            near = dist <= gate[edge]
-            near &= (
-                (edge < 4)
-                | (dist <= _LOCATOR_GAP * ring_px[edge])
-                | ~self._inside(xu, yu, a, b, edge)
-            )
+            near, edge = _capture_points(xu, yu, a, b, gate, _LOCATOR_GAP * ring_px, a.mean(axis=0))
             if np.count_nonzero(near) < _CAPTURE_MIN_EVENTS or len(np.unique(edge[near])) < 4:
                 return False
             pts = np.stack([xu[near], yu[near]], 1)
@@ -246,15 +291,6 @@ class EdgeTracker:
         self._slots = None  # clusters of the old pose are meaningless
         self._rebin(T, now_us)
         return True
-
-    @staticmethod
-    def _inside(xu, yu, a, b, edge) -> np.ndarray:
-        """Whether each point lies on the marker's centre side of its edge's line."""
-        centre = a.mean(axis=0)
-        d = b[edge] - a[edge]
-        side = d[:, 0] * (yu - a[edge, 1]) - d[:, 1] * (xu - a[edge, 0])
-        ref = d[:, 0] * (centre[1] - a[edge, 1]) - d[:, 1] * (centre[0] - a[edge, 0])
-        return side * ref > 0
 
     # --- streaming -----------------------------------------------------------------------------
     def push(self, xu: np.ndarray, yu: np.ndarray, t: np.ndarray) -> list[TrackUpdate]:

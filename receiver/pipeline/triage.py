@@ -20,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from receiver.pipeline.buffer import EventColumns
+from receiver.pipeline.buffer import EventColumns, to_columns
 
 TILE = 4
 """Side of the tracker-mask tiles in pixels, a power of two (tile = pixel >> _SHIFT)."""
@@ -32,46 +32,40 @@ surface is read at random for every event); the epoch moves on before they could
 
 
 @numba.njit(cache=True, nogil=True)
-def _triage(t, x, y, p, surface, epoch, gap_us, tiles, table):
+def _triage(events, surface, epoch, gap_us, tiles):
     """Update ``surface[y, x, polarity] = (burst start, last event)`` (ON only when the surface
-    has one polarity); return the events on the marked ``tiles`` as columns (t, x, y, p, xu,
-    yu)."""
-    n = t.shape[0]
-    ct, cx, cy = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16)
-    cp, xu, yu = np.empty(n, np.int8), np.empty(n, np.float32), np.empty(n, np.float32)
+    has one polarity); return the indices of the events on the marked ``tiles``.
+
+    ``events`` is the structured chunk itself: numba reads each record's fields in one go, which
+    runs a third faster than four strided field views."""
+    selected = np.empty(events.shape[0], np.int64)  # pages are touched only as far as written
     polarities = surface.shape[2]
     k = 0
-    for i in range(t.shape[0]):
-        xi, yi = x[i], y[i]
-        d = 0 if p[i] > 0 else 1
+    for i in range(events.shape[0]):
+        e = events[i]
+        xi, yi = e.x, e.y
+        d = 0 if e.p > 0 else 1
         if d < polarities:
-            ti = np.int32(t[i] - epoch)
-            s = surface[yi, xi, d]
-            if ti - s[1] > gap_us:
-                s[0] = ti
-            s[1] = ti
+            ti = np.int32(e.t - epoch)
+            if ti - surface[yi, xi, d, 1] > gap_us:
+                surface[yi, xi, d, 0] = ti
+            surface[yi, xi, d, 1] = ti
         if tiles[yi >> _SHIFT, xi >> _SHIFT]:
-            ct[k], cx[k], cy[k], cp[k] = t[i], xi, yi, p[i]
-            xu[k], yu[k] = table[yi, xi, 0], table[yi, xi, 1]
+            selected[k] = i
             k += 1
-    return ct[:k], cx[:k], cy[:k], cp[:k], xu[:k], yu[:k]
+    return selected[:k]
 
 
 @numba.njit(cache=True, nogil=True)
 def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table):
     """(t, x, y, p, xu, yu) of the bursts that began in ``[t0, t1)`` (since ``epoch``) on the
-    pixels of the box."""
+    pixels of the box, in one pass (the outputs are sized for every pixel, touched as filled)."""
     polarities = surface.shape[2]
-    n = 0
-    for yy in range(y0, y1):
-        for xx in range(x0, x1):
-            for d in range(polarities):
-                if t0 <= surface[yy, xx, d, 0] < t1:
-                    n += 1
-    t = np.empty(n, np.int64)
-    x, y = np.empty(n, np.uint16), np.empty(n, np.uint16)
-    xu, yu = np.empty(n, np.float32), np.empty(n, np.float32)
-    p = np.empty(n, np.int8)
+    size = max(y1 - y0, 0) * max(x1 - x0, 0) * polarities
+    t = np.empty(size, np.int64)
+    x, y = np.empty(size, np.uint16), np.empty(size, np.uint16)
+    xu, yu = np.empty(size, np.float32), np.empty(size, np.float32)
+    p = np.empty(size, np.int8)
     k = 0
     for yy in range(y0, y1):
         for xx in range(x0, x1):
@@ -82,28 +76,40 @@ def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table):
                     xu[k], yu[k] = table[yy, xx, 0], table[yy, xx, 1]
                     p[k] = 1 - 2 * d
                     k += 1
-    return t, x, y, p, xu, yu
+    return t[:k], x[:k], y[:k], p[:k], xu[:k], yu[:k]
 
 
 @numba.njit(cache=True, nogil=True)
-def _mark_tiles(tiles, table, a, b, reach, tx0, tx1, ty0, ty1):
-    """Mark the tiles of the box whose centre (in ideal pixels) lies within ``reach`` of an edge."""
+def _mark_tiles(tiles, table, a, b, reach, margin):
+    """Mark the tiles whose centre (in ideal pixels) lies within ``reach`` of an edge, searching
+    each edge's own box (``margin`` tiles wider, for the distortion between raw and ideal
+    pixels) rather than the whole ring's."""
     tiles[:] = False
     half = TILE // 2
     height, width = table.shape[0], table.shape[1]
-    for ty in range(ty0, ty1):
-        for tx in range(tx0, tx1):
-            cy, cx = min(ty * TILE + half, height - 1), min(tx * TILE + half, width - 1)
-            px, py = table[cy, cx, 0], table[cy, cx, 1]
-            for e in range(a.shape[0]):
-                dx, dy = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
-                L2 = dx * dx + dy * dy
+    rows, cols = tiles.shape
+    for e in range(a.shape[0]):
+        # Clamped to the sensor (plus a tile) before the integer conversion: a pose far off
+        # the view projects to huge coordinates.
+        x_lo = min(max(min(a[e, 0], b[e, 0]) - reach, -TILE), width + TILE)
+        x_hi = min(max(max(a[e, 0], b[e, 0]) + reach, -TILE), width + TILE)
+        y_lo = min(max(min(a[e, 1], b[e, 1]) - reach, -TILE), height + TILE)
+        y_hi = min(max(max(a[e, 1], b[e, 1]) + reach, -TILE), height + TILE)
+        tx0, tx1 = max(int(np.floor(x_lo / TILE)) - margin, 0), int(np.ceil(x_hi / TILE))
+        ty0, ty1 = max(int(np.floor(y_lo / TILE)) - margin, 0), int(np.ceil(y_hi / TILE))
+        dx, dy = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+        L2 = dx * dx + dy * dy
+        for ty in range(ty0, min(ty1 + margin + 1, rows)):
+            for tx in range(tx0, min(tx1 + margin + 1, cols)):
+                if tiles[ty, tx]:
+                    continue
+                cy, cx = min(ty * TILE + half, height - 1), min(tx * TILE + half, width - 1)
+                px, py = table[cy, cx, 0], table[cy, cx, 1]
                 w = ((px - a[e, 0]) * dx + (py - a[e, 1]) * dy) / L2 if L2 > 0 else 0.0
                 w = min(max(w, 0.0), 1.0)
                 ex, ey = a[e, 0] + w * dx - px, a[e, 1] + w * dy - py
                 if ex * ex + ey * ey <= reach * reach:
                     tiles[ty, tx] = True
-                    break
 
 
 class EventTriage:
@@ -119,6 +125,12 @@ class EventTriage:
         self.gap_us = int(gap_us)
         self._tiles = np.zeros((-(-height // TILE), -(-width // TILE)), np.bool_)
         self._edges: np.ndarray | None = None
+        # The tiles are raw pixels, the edges ideal ones: search this many tiles further.
+        shift = max(
+            np.nanmax(np.abs(self._table[..., 0] - np.arange(width))),
+            np.nanmax(np.abs(self._table[..., 1] - np.arange(height)[:, None])),
+        )
+        self._warp_tiles = int(np.ceil(shift / TILE)) + 1
 
     def reset(self, epoch_us: int) -> None:
         """Forget every burst and the tracked edges (a new lock)."""
@@ -133,19 +145,8 @@ class EventTriage:
             shift = int(events["t"][0]) - self.epoch_us - (1 << 20)
             self.surface[:] = np.maximum(self.surface.astype(np.int64) - shift, _NEVER)
             self.epoch_us += shift
-        return EventColumns(
-            *_triage(
-                events["t"],
-                events["x"],
-                events["y"],
-                events["p"],
-                self.surface,
-                self.epoch_us,
-                self.gap_us,
-                self._tiles,
-                self._table,
-            )
-        )
+        near = _triage(events, self.surface, self.epoch_us, self.gap_us, self._tiles)
+        return to_columns(events, self._table, near)
 
     def track_near(self, a: np.ndarray, b: np.ndarray, reach_px: float) -> None:
         """Select the events within about ``reach_px`` of the segments ``a[i] -> b[i]`` (ideal
@@ -155,21 +156,7 @@ class EventTriage:
             return
         self._edges = edges
         reach = reach_px + TILE * 0.75  # a tile centre stands for pixels up to ~0.7 tile away
-        # The box is in raw pixels and the edges in ideal ones: two tiles cover the distortion.
-        lo = np.floor((np.minimum(a, b).min(axis=0) - reach) / TILE).astype(int) - 2
-        hi = np.ceil((np.maximum(a, b).max(axis=0) + reach) / TILE).astype(int) + 3
-        ty, tx = self._tiles.shape
-        _mark_tiles(
-            self._tiles,
-            self._table,
-            a,
-            b,
-            reach,
-            max(lo[0], 0),
-            min(hi[0], tx),
-            max(lo[1], 0),
-            min(hi[1], ty),
-        )
+        _mark_tiles(self._tiles, self._table, a, b, reach, self._warp_tiles)
 
     def bursts(self, t0: int, t1: int, box: tuple[int, int, int, int]) -> EventColumns:
         """The pixel bursts that began in ``[t0, t1)`` inside ``box`` = (x0, x1, y0, y1): one

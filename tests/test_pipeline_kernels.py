@@ -1,0 +1,296 @@
+"""The receiver's per-event kernels against plain reference implementations: the triage pass, the
+burst read-out, the tracker mask, the columns, cluster re-binning and the pose solver's normal
+equations. Each reference is the obvious (slow) way to compute the same thing."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from receiver.camera import CameraModel
+from receiver.events import make_events
+from receiver.pipeline.buffer import to_columns
+from receiver.pipeline.config import ReceiverConfig
+from receiver.pipeline.pose import _residuals
+from receiver.pipeline.tracker import EdgeTracker, _assign, _capture_points
+from receiver.pipeline.triage import TILE, EventTriage
+from receiver.poses import make_pose
+
+K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
+WIDTH, HEIGHT = 64, 48
+DISTORTED = CameraModel(WIDTH, HEIGHT, K, np.array([-0.3, 0.1, 0.0, 0.0, 0.0]))
+SIZE = 0.272
+GAP_US = 100
+
+
+def _stream(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Time-sorted events on a few pixels (so that bursts form), both polarities."""
+    t = np.sort(rng.integers(0, 2000, n))
+    x, y = rng.integers(0, 6, n), rng.integers(0, 4, n)
+    return make_events(t, x, y, rng.choice([-1, 1], n))
+
+
+def _reference_surface(events: np.ndarray, polarities: int) -> dict[tuple, int]:
+    """(x, y, polarity index) -> start of the pixel's latest burst, event by event."""
+    start: dict[tuple, int] = {}
+    last: dict[tuple, int] = {}
+    for t, x, y, p in zip(events["t"], events["x"], events["y"], events["p"], strict=True):
+        key = (int(x), int(y), 0 if p > 0 else 1)
+        if key[2] >= polarities:
+            continue
+        if key not in last or t - last[key] > GAP_US:
+            start[key] = int(t)
+        last[key] = int(t)
+    return start
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 400), st.booleans(), st.integers(1, 3))
+def test_triage_keeps_each_pixels_latest_burst_start(seed, n, both, pieces):
+    rng = np.random.default_rng(seed)
+    events = _stream(rng, n)
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, both, epoch_us=0)
+    for part in np.array_split(events, pieces):  # chunking must not matter
+        triage(part)
+    expected = _reference_surface(events, 2 if both else 1)
+    bursts = triage.bursts(-(1 << 20), 1 << 20, (0, WIDTH, 0, HEIGHT))
+    got = {
+        (int(x), int(y), 0 if p > 0 else 1): int(t)
+        for t, x, y, p in zip(bursts["t"], bursts["x"], bursts["y"], bursts["p"], strict=True)
+    }
+    assert got == expected
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 2000), st.integers(0, 2000))
+def test_bursts_are_those_that_began_in_the_window_inside_the_box(seed, t0, span):
+    rng = np.random.default_rng(seed)
+    events = _stream(rng, 300)
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, True, epoch_us=0)
+    triage(events)
+    box = (1, 4, 1, 3)
+    expected = {
+        key: t
+        for key, t in _reference_surface(events, 2).items()
+        if t0 <= t < t0 + span and box[0] <= key[0] < box[1] and box[2] <= key[1] < box[3]
+    }
+    bursts = triage.bursts(t0, t0 + span, box)
+    assert len(bursts) == len(expected)
+    for t, x, y, p, xu, yu in zip(
+        *(bursts[f] for f in ("t", "x", "y", "p", "xu", "yu")), strict=True
+    ):
+        assert expected[(int(x), int(y), 0 if p > 0 else 1)] == t
+        assert (xu, yu) == tuple(DISTORTED.undistort_table[y, x].astype(np.float32))
+
+
+def _tile_centres_ideal() -> np.ndarray:
+    """(rows, cols, 2) ideal pixel of every tile's centre pixel."""
+    table = DISTORTED.undistort_table
+    cy = np.minimum(np.arange(0, HEIGHT, TILE) + TILE // 2, HEIGHT - 1)
+    cx = np.minimum(np.arange(0, WIDTH, TILE) + TILE // 2, WIDTH - 1)
+    return table[cy[:, None], cx[None, :]].astype(np.float64)
+
+
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    d = b - a
+    w = np.clip(((p - a) @ d) / max(d @ d, 1e-12), 0.0, 1.0)
+    return np.linalg.norm(a + w[..., None] * d - p, axis=-1)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.lists(st.tuples(*[st.floats(-20, 80, allow_nan=False)] * 4), min_size=1, max_size=8),
+    st.floats(0.0, 10.0),
+)
+def test_tracker_mask_holds_exactly_the_tiles_near_an_edge(segments, reach_px):
+    """Tiles are raw pixels and the edges ideal ones; the lens here bends the corners by
+    several pixels, so a search box that ignored the distortion would miss tiles."""
+    seg = np.array(segments, float)
+    a, b = seg[:, :2].copy(), seg[:, 2:].copy()
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, False)
+    triage.track_near(a, b, reach_px)
+    reach = reach_px + TILE * 0.75
+    centres = _tile_centres_ideal()
+    dist = np.min([_segment_distance(centres, a[e], b[e]) for e in range(len(a))], axis=0)
+    tiles = triage._tiles
+    assert tiles[dist < reach - 1e-6].all()
+    assert not tiles[dist > reach + 1e-6].any()
+
+
+def test_tracker_mask_of_edges_far_off_the_view_is_empty():
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, False)
+    for far in (1e30, -1e30):
+        triage.track_near(np.array([[far, far]]), np.array([[far, -far]]), reach_px=4.0)
+        assert not triage._tiles.any()
+
+
+def test_triage_hands_the_tracker_the_events_on_marked_tiles_as_columns():
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, False)
+    triage.track_near(np.array([[0.0, 30.0]]), np.array([[63.0, 30.0]]), reach_px=2.0)
+    rng = np.random.default_rng(3)
+    n = 500
+    events = make_events(
+        np.sort(rng.integers(0, 1000, n)),
+        rng.integers(0, WIDTH, n),
+        rng.integers(0, HEIGHT, n),
+        rng.choice([-1, 1], n),
+    )
+    on_tile = triage._tiles[events["y"] // TILE, events["x"] // TILE]
+    assert 0 < on_tile.sum() < n
+    near = triage(events)
+    expected = to_columns(events[on_tile], DISTORTED.undistort_table)
+    for field in ("t", "x", "y", "p", "xu", "yu"):
+        assert np.array_equal(near[field], expected[field])
+
+
+def test_columns_of_selected_events_match_columns_of_their_copy():
+    events = make_events([0, 10, 20, 30], [1, 2, 3, 4], [4, 5, 6, 7], [1, -1, 1, -1])
+    index = np.array([3, 0, 2])
+    picked = to_columns(events, DISTORTED.undistort_table, index)
+    copied = to_columns(events[index], DISTORTED.undistort_table)
+    for field in ("t", "x", "y", "p", "xu", "yu"):
+        assert np.array_equal(picked[field], copied[field])
+    assert picked["t"].tolist() == [30, 0, 20]
+
+
+def _edge_points(tracker: EdgeTracker, n_per_edge: int, rng: np.random.Generator):
+    """Ideal pixels within a pixel of the tracker's projected edges."""
+    s = rng.uniform(0.02, 0.98, (8, n_per_edge, 1))
+    pts = tracker._a[:, None] + s * (tracker._b - tracker._a)[:, None]
+    pts = pts.reshape(-1, 2) + rng.normal(0, 0.5, (8 * n_per_edge, 2))
+    return rng.permutation(pts)
+
+
+def test_rebinning_keeps_the_fresh_events_and_their_indicators():
+    config = ReceiverConfig(CameraModel(346, 260, K))
+    T = make_pose(np.eye(3), [-SIZE / 2, -SIZE / 2, 0.6])
+    tracker = EdgeTracker(config, T, now_us=0)
+    rng = np.random.default_rng(1)
+    pts = _edge_points(tracker, 40, rng)
+    t = np.sort(rng.integers(0, 40_000, len(pts)))
+    tracker.push(pts[:, 0], pts[:, 1], t)
+    before = [s.copy() for s in tracker._slots]
+    now = 50_000
+    # Same pose: the bins stay, the events older than max_age leave.
+    tracker._rebin(tracker.T_cam_world, now)
+    sx, _, st_, _, sum_d, n_valid = tracker._slots
+    fresh = before[2] >= now - config.tracker.max_age_us
+    assert 0 < fresh.sum() < (before[2] >= 0).sum()
+    width = min(st_.shape[1], before[2].shape[1])
+    assert np.array_equal(st_[:, :width], np.where(fresh, before[2], -1)[:, :width])
+    assert np.array_equal(sx[st_ >= 0], before[0][fresh])
+    assert n_valid.tolist() == fresh.sum(axis=1).tolist()
+    assert np.allclose(sum_d, np.where(fresh, before[3], 0.0).sum(axis=1))
+
+
+def test_pose_normal_equations_match_a_numeric_jacobian():
+    """``_residuals`` accumulates J^T W J and J^T W r point by point in scalar loops; a
+    finite-difference Jacobian of its own residuals must give the same system."""
+    rng = np.random.default_rng(2)
+    config = ReceiverConfig(CameraModel(346, 260, K))
+    ends = config.geometry.tracked_edges(SIZE)
+    c, s = np.cos(0.2), np.sin(0.2)
+    R = np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])  # tilted 11 degrees about x
+    t = np.array([-SIZE / 2, -SIZE / 2, 0.6])
+    k = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    edge = rng.integers(0, 8, 200)
+    world = ends[edge, 0] + rng.uniform(0, 1, (200, 1)) * (ends[edge, 1] - ends[edge, 0])
+    pc = world @ R.T + t
+    pts = pc[:, :2] / pc[:, 2:] * k[:2] + k[2:] + rng.normal(0, 2.0, (200, 2))
+    huber = 1.0
+
+    def signed(step: np.ndarray) -> np.ndarray:
+        """Signed point-line distances after the update exp(w) R, exp(w) t + v."""
+        w, v = step[:3], step[3:]
+        theta = np.linalg.norm(w)
+        W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        dR = np.eye(3) + (np.sin(theta) / theta * W if theta else W)
+        if theta:
+            dR += (1 - np.cos(theta)) / theta**2 * (W @ W)
+        R2, t2 = dR @ R, dR @ t + v
+        proj = ends @ R2.T + t2
+        px = proj[..., :2] / proj[..., 2:] * k[:2] + k[2:]
+        a, b = px[edge, 0], px[edge, 1]
+        d = b - a
+        cross = d[:, 0] * (pts[:, 1] - a[:, 1]) - d[:, 1] * (pts[:, 0] - a[:, 0])
+        return cross / np.linalg.norm(d, axis=1)
+
+    r = signed(np.zeros(6))
+    eps = 1e-7
+    J = np.stack([(signed(eps * np.eye(6)[j]) - r) / eps for j in range(6)], axis=1)
+    wgt = np.where(np.abs(r) <= huber, 1.0, huber / np.abs(r))
+    _, H, g = _residuals(R, t, k, pts, edge.astype(np.int64), ends, huber, True)
+    assert np.allclose(H, H.T)
+    assert np.allclose(H, J.T @ (wgt[:, None] * J), rtol=1e-4, atol=1e-3 * np.abs(H).max())
+    assert np.allclose(g, J.T @ (wgt * r), rtol=1e-4, atol=1e-3 * np.abs(g).max())
+
+
+def _tracker_and_points(seed: int, n: int):
+    """A tracker at a tilted view and points near its edges, in the band and far off."""
+    config = ReceiverConfig(CameraModel(346, 260, K))
+    c, s = np.cos(0.3), np.sin(0.3)
+    R = np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])  # swung 17 degrees: no edge is axis-aligned
+    tracker = EdgeTracker(config, make_pose(R, [-SIZE / 2, -SIZE / 2, 0.6]), now_us=0)
+    rng = np.random.default_rng(seed)
+    e = rng.integers(0, 8, n)
+    along = rng.uniform(-0.1, 1.1, (n, 1))
+    pts = tracker._a[e] + along * (tracker._b[e] - tracker._a[e])
+    pts += rng.normal(0, 1, (n, 2)) * rng.choice([0.5, 5.0, 30.0], (n, 1))
+    return tracker, pts[:, 0], pts[:, 1]
+
+
+def _distance(px: float, py: float, a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    d = b - a
+    w = min(max(((px - a[0]) * d[0] + (py - a[1]) * d[1]) / (d @ d), 0.0), 1.0)
+    return float(np.hypot(a[0] + w * d[0] - px, a[1] + w * d[1] - py)), w
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_cluster_assignment_matches_a_plain_loop(seed):
+    """The compiled assignment skips far edges by their lines; a loop that measures every edge
+    must give the same clusters and the same fit counts."""
+    tracker, xu, yu = _tracker_and_points(seed, 300)
+    t = np.arange(len(xu), dtype=np.int64)
+    gate, band, cap = tracker._gate, tracker._band, tracker._cap
+    expected_t = np.full(tracker._slots[2].shape, -1)
+    near_count = on_count = 0
+    for i in range(len(t)):
+        near = on = False
+        for e in range(8):
+            d, w = _distance(xu[i], yu[i], tracker._a[e], tracker._b[e])
+            near |= d <= band[e]
+            if d <= gate[e]:
+                on = True
+                expected_t[e, min(int(w * cap[e]), cap[e] - 1)] = t[i]
+        near_count += near
+        on_count += near and on
+    sx, sy, st_, sd, sum_d, n_valid = tracker._slots
+    fit = np.zeros(3, np.int64)
+    args = (tracker._a, tracker._b, gate, band, cap, sx, sy, st_, sd, sum_d, n_valid, fit)
+    _assign(xu, yu, t, 0, *args, 1 << 62, 1 << 62, 0.25)
+    assert np.array_equal(st_, expected_t)
+    assert fit[:2].tolist() == [near_count, on_count]
+    assert n_valid.tolist() == (expected_t >= 0).sum(axis=1).tolist()
+    assert np.allclose(sum_d, np.where(st_ >= 0, sd, 0.0).sum(axis=1))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.5, 3.0))
+def test_capture_points_match_their_definition(seed, gate_scale):
+    tracker, xu, yu = _tracker_and_points(seed, 400)
+    a, b = tracker._a, tracker._b
+    ring_px = tracker._ring_px(a, b)
+    gate, deep = gate_scale * ring_px, 0.6 * ring_px
+    centre = a.mean(axis=0)
+    near, edge = _capture_points(xu, yu, a, b, gate, deep, centre)
+    for i in range(len(xu)):
+        dist = [_distance(xu[i], yu[i], a[e], b[e])[0] for e in range(8)]
+        e = int(np.argmin(dist))
+        d = b[e] - a[e]
+        side = d[0] * (yu[i] - a[e, 1]) - d[1] * (xu[i] - a[e, 0])
+        ref = d[0] * (centre[1] - a[e, 1]) - d[1] * (centre[0] - a[e, 0])
+        inside_deep = e >= 4 and dist[e] > deep[e] and side * ref > 0
+        assert edge[i] == e
+        assert near[i] == (dist[e] <= gate[e] and not inside_deep)
