@@ -17,7 +17,7 @@ import numpy as np
 from bench.report import write_section
 from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
-from receiver.pipeline.config import ReceiverConfig
+from receiver.pipeline.config import ReceiverConfig, TrackerParams
 from receiver.pipeline.metrics import pose_errors
 from receiver.pipeline.receiver import Receiver
 from receiver.pipeline.report import DecodeLog, FrameTruth
@@ -31,8 +31,10 @@ CAMERA = CameraModel(240, 180, np.array([[208.0, 0, 120], [0, 208.0, 90], [0, 0,
 MESSAGE = bytes(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8))
 
 
-def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
-    scene = Scene(
+def hand_held_scene(flow_px_per_ms: float, seed: int) -> Scene:
+    """The hand-held scene of this benchmark and of the receiver's motion tests: N = 16, robust,
+    60 Hz, 0.6 m away (about 4 px per cell), on the small sensor."""
+    return Scene(
         encoder=StreamEncoder(MESSAGE, profile="robust", cells=16),
         marker_size_m=0.272,
         display=Display(refresh_hz=60.0),
@@ -41,7 +43,18 @@ def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
         sensor=SensorModel.preset("gen4-indoor"),
         seed=seed,
     )
-    rx = Receiver(ReceiverConfig(CAMERA))
+
+
+def hand_held_config() -> ReceiverConfig:
+    """The receiver as set for a hand-held camera: the fit-ratio loss check on (off by default,
+    because with a still camera it judges sensor noise), so a pose that slid off the ring's
+    edges is dropped."""
+    return ReceiverConfig(CAMERA, tracker=TrackerParams(min_fit_ratio=0.5))
+
+
+def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
+    scene = hand_held_scene(flow_px_per_ms, seed)
+    rx = Receiver(hand_held_config())
     log = DecodeLog(rx, FrameTruth(scene.encoder, 60.0))
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
     for chunk in rec:
@@ -57,8 +70,13 @@ def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
         "pose_hz": np.nan,
         "losses": rx.stats.losses,
         "lock_ms": rx.stats.lock_times_us[0] / 1e3 if rx.stats.lock_times_us else None,
+        "first_cm": np.nan,
+        "attempts": sum(rx.stats.detection_failures.values()) + len(rx.stats.lock_times_us),
     }
     t = np.array(log.pose_t)
+    if len(t):
+        first = rec.pose_at(t[:1])[0][:3, 3] - np.asarray(log.poses[0])[:3, 3]
+        row["first_cm"] = 100 * float(np.linalg.norm(first))
     if len(t) >= 3:
         err = pose_errors(t, np.array(log.poses), rec.pose_at(t), delta_us=10_000)
         tracked_s = (t[-1] - t[0]) / 1e6
@@ -82,26 +100,32 @@ def main() -> None:
             rows.append(run_one(flow, seed, duration))
             print(rows[-1], flush=True)
     lines = [
-        "| flow px/ms | seed | ATE cm | RPE cm / 10 ms | RPE deg | BER | decoded | "
-        "pose updates/s | losses | first lock ms |",
-        "|---" * 10 + "|",
+        "| flow px/ms | seed | first lock ms | detection attempts | first pose cm | ATE cm | "
+        "RPE cm / 10 ms | RPE deg | BER | decoded | pose updates/s | losses |",
+        "|---" * 12 + "|",
     ]
     for r in rows:
         ber = "-" if r["ber"] is None else f"{r['ber']:.4f}"
         lock = "never" if r["lock_ms"] is None else f"{r['lock_ms']:.0f}"
         lines.append(
-            f"| {r['flow']} | {r['seed']} | {r['ate_cm']:.2f} | {r['rpe_cm']:.2f} | "
-            f"{r['rpe_deg']:.2f} | {ber} | {'yes' if r['decoded'] else 'no'} | "
-            f"{r['pose_hz']:.0f} | {r['losses']} | "
-            f"{lock} |"
+            f"| {r['flow']} | {r['seed']} | {lock} | {r['attempts']} | {r['first_cm']:.1f} | "
+            f"{r['ate_cm']:.2f} | {r['rpe_cm']:.2f} | {r['rpe_deg']:.2f} | {ber} | "
+            f"{'yes' if r['decoded'] else 'no'} | {r['pose_hz']:.0f} | {r['losses']} |"
         )
     body = (
         f"HandHeldMotion at 0.6 m, N = 16, robust profile, gen4-indoor sensor, 240x180 "
-        f"camera, {duration} s clips. ATE after a rigid Umeyama fit (scale fixed at 1 by "
-        "the marker size). Targets: ATE <= 1 cm, every message decoded, >= 1 kHz poses. "
-        "'never' under first lock: the detector did not lock during the clip (detection "
-        "under hand-held motion is a known gap; ATE etc. then have nothing to score).\n\n"
-        + "\n".join(lines)
+        f"camera, {duration} s clips, fit-ratio loss check on (min_fit_ratio 0.5). ATE after "
+        "a rigid Umeyama fit (scale fixed at 1 by the marker size). Targets: first lock "
+        "within 300 ms, first pose within 5 cm, "
+        "ATE <= 1 cm, every message decoded, >= 1 kHz poses. Detection under motion: a blink "
+        "map of 8 px tiles, one motion-compensated burst, a fitted locator square, captures "
+        "onto the ring's edge events, the 'L' read through the pose, and a lock verified on "
+        "the buffered frames (locator contrast, fit ratio). 'never' under first lock: no "
+        "verified lock during the clip (ATE etc. then have nothing to score). A message "
+        "needs more frames than one clip gives while the inner locator reads poorly under "
+        "motion. At 1-2 px/ms most attempts still fail (swept edges stick to the compensated "
+        "burst's outline, so the ring capture starts a ring width off) and a wrong lock can "
+        "pass verification; the fit-ratio check then drops it (losses).\n\n" + "\n".join(lines)
     )
     write_section(
         "tracking",

@@ -1,9 +1,6 @@
-"""Detection and tracking while a hand-held camera moves: the motion-compensated locator search
-(``locate``) on synthetic events, and the receiver on a small virtual event camera.
-
-Detection under motion is a known gap: the receiver lock tests are expected failures (not strict)
-and say what they require; the safety test (a wrong lock must not survive) holds today.
-"""
+"""Detection and tracking while a hand-held camera moves: the blink map, the motion-compensated
+locator search and the orientation read on synthetic inputs, the retry schedule, and the
+receiver on a small virtual event camera (the scene of ``bench.tracking``)."""
 
 from __future__ import annotations
 
@@ -12,38 +9,43 @@ import os
 import numpy as np
 import pytest
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.events import EVENT_DTYPE
-from receiver.pipeline.config import ReceiverConfig, TrackerParams
+from bench.tracking import CAMERA, hand_held_config, hand_held_scene
+from occ.marker import MarkerGeometry, render
+from receiver.events import EVENT_DTYPE, make_events
+from receiver.pipeline import receiver as receiver_module
+from receiver.pipeline.config import DetectorParams, ReceiverConfig
+from receiver.pipeline.detector import blinking_region, orient
 from receiver.pipeline.locate import (
+    Box,
     MarkerNotFound,
     compensated_burst,
+    fit_square,
     locator_blob,
     motion_flow,
     quadrilateral,
 )
 from receiver.pipeline.receiver import TRACKING, PoseEstimate, Receiver, StateChange
-from receiver.sim import Display, HandHeldMotion, Scene, SensorModel, simulate
+from receiver.sim import simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
-# DAVIS240-sized sensor, intrinsics scaled from 346x260 (f = 300 px): the simulator's hand-held
-# path costs tens of seconds of CPU per simulated second even at this size.
-CAMERA = CameraModel(240, 180, np.array([[208.0, 0, 120], [0, 208.0, 90], [0, 0, 1]]))
-MESSAGE = bytes(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8))
 LOCK_WITHIN_US = 300_000
 """A lock needs one detection window (70 ms) plus a few retries."""
 FIRST_POSE_MAX_M = 0.05
 """Initial pose (after capture onto the ring edges) against ground truth."""
-TRACKED_MAX_M = 0.03
+TRACKED_RMS_M = 0.02
+TRACKED_P95_M = 0.03
+"""At about 4 px per cell a pixel is 2-3 mm on the marker; a re-lock may start a few cm off and
+converge within milliseconds (the wrong-lock test bounds how long anything worse may last)."""
 WRONG_LOCK_M = 0.10
 WRONG_LOCK_DROPPED_US = 50_000
 """A pose this far off must be dropped (fit ratio) within this time."""
 
 
 SHAPE = (180, 240)
+SENSOR = Box(0, 0, 240, 180)
 PERIOD_US = 1e6 / 30
+CONFIG = ReceiverConfig(CAMERA)
 
 
 def _events(t, x, y, p) -> np.ndarray:
@@ -93,7 +95,7 @@ def _moving_marker(flow, duration_us=70_000, seed=0):
 def test_motion_flow_recovers_the_translation_of_an_outline(flow):
     rng = np.random.default_rng(1)
     ev = _outline(rng, 20_000, 0, 13_000, (60, 40), 80, flow, lambda n: -np.ones(n, np.int8))
-    assert np.allclose(motion_flow(ev, 13_000, SHAPE), flow, atol=0.1)
+    assert np.allclose(motion_flow(ev, 13_000, SENSOR), flow, atol=0.1)
 
 
 def test_motion_flow_of_unstructured_noise_is_zero():
@@ -105,16 +107,16 @@ def test_motion_flow_of_unstructured_noise_is_zero():
         rng.uniform(0, 179, n),
         -np.ones(n, np.int8),
     )
-    assert np.array_equal(motion_flow(ev, 13_000, SHAPE), [0.0, 0.0])
+    assert np.array_equal(motion_flow(ev, 13_000, SENSOR), [0.0, 0.0])
 
 
 @pytest.mark.parametrize("flow", [(0.0, 0.0), (0.5, 0.3), (-1.0, 1.0)])
 def test_compensated_burst_outlines_the_blinking_square_not_the_swept_ring(flow):
     ev = _moving_marker(np.array(flow))
-    image, t_burst, found = compensated_burst([ev], 0.0, PERIOD_US, SHAPE)
-    assert np.allclose(found, flow, atol=0.15)
-    quad = quadrilateral(locator_blob(image, cell_px=60 / 18))
-    move = np.array(flow) * t_burst / 1e3
+    burst = compensated_burst([ev], 0.0, PERIOD_US, SENSOR)
+    assert np.allclose(burst.flow, flow, atol=0.15)
+    quad = quadrilateral(locator_blob(burst.image, cell_px=60 / 18))
+    move = np.array(flow) * burst.t_us / 1e3
     truth = np.array([[90, 60], [150, 60], [150, 120], [90, 120]]) + move
     nearest = np.linalg.norm(truth[:, None] - quad[None], axis=2).min(axis=1)
     assert nearest.max() < 4, quad.round(1)  # every corner found (orientation is not read here)
@@ -125,19 +127,110 @@ def test_an_image_without_a_blob_is_a_clear_miss():
         locator_blob(np.zeros(SHAPE, bool), cell_px=4.0)
 
 
-def _run(flow_px_per_ms: float, duration_s: float, seed: int = 0) -> dict:
-    scene = Scene(
-        encoder=StreamEncoder(MESSAGE, profile="robust", cells=16),
-        marker_size_m=0.272,
-        display=Display(refresh_hz=60.0),
-        camera=CAMERA,
-        motion=HandHeldMotion(distance_m=0.6, flow_px_per_ms=flow_px_per_ms, seed=seed),
-        sensor=SensorModel.preset("gen4-indoor"),
-        seed=seed,
+def test_compensated_burst_works_in_a_box_of_the_sensor():
+    ev = _moving_marker(np.array([0.5, 0.3]))
+    box = Box(60, 30, 200, 160)
+    burst = compensated_burst([ev], 0.0, PERIOD_US, box)
+    assert burst.image.shape == box.shape
+    full = compensated_burst([ev], 0.0, PERIOD_US, SENSOR)
+    assert np.array_equal(burst.image, full.image[30:160, 60:200])
+
+
+@pytest.mark.parametrize("flow", [(0.0, 0.0), (1.0, -0.5)])
+def test_blinking_region_boxes_the_square_and_finds_its_burst_phase(flow):
+    region = blinking_region([_moving_marker(np.array(flow))], CONFIG)
+    box = region.box
+    (x0, y0), (x1, y1) = np.array([[90, 60], [150, 120]]) + np.array(flow) * 70  # at the end
+    assert box.x0 <= x0 and box.y0 <= y0 and box.x1 >= x1 and box.y1 >= y1
+    assert box.x1 - box.x0 < 200  # the square and its path, not the whole sensor
+    # Bursts are centred on whole periods: the phase is 0 (mod one period).
+    off = (region.burst_us + PERIOD_US / 2) % PERIOD_US - PERIOD_US / 2
+    assert abs(off) < 1000 and region.harmonic_ratio > 0.3
+
+
+def test_blinking_region_of_noise_is_a_clear_miss():
+    rng = np.random.default_rng(4)
+    n = 50_000
+    ev = make_events(
+        np.sort(rng.integers(0, 70_000, n)),
+        rng.integers(0, 240, n),
+        rng.integers(0, 180, n),
+        rng.choice([-1, 1], n),
     )
-    # Under motion the fit-ratio loss check is on: it drops a pose that slid off the ring's
-    # edges (off by default, because with a still camera it judges sensor noise).
-    rx = Receiver(ReceiverConfig(CAMERA, tracker=TrackerParams(min_fit_ratio=0.5)))
+    with pytest.raises(MarkerNotFound, match="temporal: nothing blinks at 30 Hz"):
+        blinking_region([ev], CONFIG)
+
+
+def _locator_image(geometry: MarkerGeometry, cell_px: int, border_px: int) -> np.ndarray:
+    """Lit pixels of a data frame's locator region: the ring, a random payload, a dark gap of
+    one ring, and the white ring's two edges as thin lines (what a swept ring leaves)."""
+    n = geometry.locator_side
+    cells = geometry.inner_locator.copy()
+    cells[1:-1, 1:-1] = np.random.default_rng(5).integers(0, 2, (n - 2, n - 2)).astype(bool)
+    image = np.zeros((n * cell_px + 2 * border_px,) * 2, bool)
+    inner = render(cells, cell_px) > 0
+    image[border_px:-border_px, border_px:-border_px] = inner
+    for gap in (geometry.ring * cell_px, 2 * geometry.ring * cell_px):
+        lo, hi = border_px - gap, border_px + n * cell_px + gap - 1
+        image[lo, lo:hi], image[hi, lo:hi], image[lo:hi, lo], image[lo:hi, hi] = (True,) * 4
+    return image
+
+
+def test_fit_square_pins_a_blurred_outline_to_the_locator():
+    geo, cell, border = MarkerGeometry(16), 4, 20
+    image = _locator_image(geo, cell, border)
+    side = geo.locator_side * cell
+    truth = border + np.array([[0, 0], [side, 0], [side, side], [0, side]], float) - 0.5
+    centre = truth.mean(axis=0)
+    start = centre + 1.12 * (truth - centre) + [3.0, -2.0]  # a blob grown by blur, off-centre
+    found = fit_square(image, start, geo.locator_side, geo.ring)
+    assert np.abs(found - truth).max() < 1.5, found.round(1)
+
+
+@pytest.mark.parametrize("start", range(4))
+def test_orient_reads_the_locator_at_four_pixels_per_cell(start):
+    geo, cell, border = MarkerGeometry(16), 4, 20
+    image = _locator_image(geo, cell, border)
+    side = geo.locator_side * cell
+    canonical = border + np.array([[0, 0], [side, 0], [side, side], [0, side]], float) - 0.5
+    corners, score = orient(np.roll(canonical, -start, axis=0), image, geo)
+    assert np.array_equal(corners, canonical) and score > 0.5
+
+
+def _attempts(rx: Receiver) -> int:
+    return sum(rx.stats.detection_failures.values())
+
+
+def _push_noise(rx: Receiver, chunks: int) -> None:
+    rng = np.random.default_rng(3)
+    for k in range(chunks):
+        t = np.sort(rng.integers(k * 10_000, (k + 1) * 10_000, 500))
+        rx.push(make_events(t, rng.integers(0, 240, 500), rng.integers(0, 180, 500), 1))
+
+
+@pytest.fixture
+def slow_cpu(monkeypatch):
+    """Every CPU clock reading is 10 s after the previous one: a hopelessly loaded machine."""
+    clock = iter(np.arange(0.0, 1e9, 10.0))
+    monkeypatch.setattr(receiver_module.time, "process_time", lambda: float(next(clock)))
+
+
+def test_detection_retries_are_spaced_in_event_time_whatever_the_machine(slow_cpu):
+    rx = Receiver(CONFIG)
+    _push_noise(rx, 30)  # 300 ms: attempts at 70 ms, then every 35 ms (+ one chunk's rounding)
+    assert _attempts(rx) == 6
+    assert not rx.stats.lock_times_us
+
+
+def test_a_live_receiver_spaces_failing_attempts_by_their_cpu_cost(slow_cpu):
+    rx = Receiver(ReceiverConfig(CAMERA, detector=DetectorParams(max_cpu_share=0.5)))
+    _push_noise(rx, 30)
+    assert _attempts(rx) == 1  # each attempt "took" 10 s: the next one waits 20 s
+
+
+def _run(flow_px_per_ms: float, duration_s: float, seed: int = 0) -> dict:
+    scene = hand_held_scene(flow_px_per_ms, seed)
+    rx = Receiver(hand_held_config())
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
     poses: list[PoseEstimate] = []
     changes: list[StateChange] = []
@@ -179,17 +272,23 @@ def _assert_locks_and_tracks(run: dict) -> None:
     assert locks and locks[0] <= LOCK_WITHIN_US, (
         f"no lock within {LOCK_WITHIN_US / 1e3:.0f} ms: {dict(run['stats'].detection_failures)}"
     )
-    assert run["err"][0] <= FIRST_POSE_MAX_M, f"first pose {run['err'][0] * 100:.1f} cm off"
-    assert np.max(run["err"]) <= TRACKED_MAX_M, f"tracked pose up to {run['err'].max():.3f} m off"
+    err = run["err"]
+    assert err[0] <= FIRST_POSE_MAX_M, f"first pose {err[0] * 100:.1f} cm off"
+    assert np.sqrt(np.mean(err**2)) <= TRACKED_RMS_M, f"RMS {np.sqrt(np.mean(err**2)):.3f} m"
+    p95 = np.percentile(err, 95)
+    assert p95 <= TRACKED_P95_M, f"95% of the tracked poses within {p95:.3f} m"
 
 
-@pytest.mark.xfail(reason="detection under hand-held motion is not solved yet", strict=False)
 def test_detects_and_tracks_at_half_a_pixel_per_ms(slow_hand):
     _assert_locks_and_tracks(slow_hand)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="detection under hand-held motion is not solved yet", strict=False)
+@pytest.mark.xfail(
+    reason="at 1-2 px/ms the compensated burst's outline is often a ring width off and the "
+    "capture then fits the wrong edges; see docs/BENCHMARKS.md, section tracking",
+    strict=False,
+)
 @pytest.mark.parametrize("flow", [1.0, 2.0])
 def test_detects_and_tracks_faster_motion(flow):
     _assert_locks_and_tracks(_run(flow, 1.0, seed=1))

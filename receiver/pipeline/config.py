@@ -24,6 +24,10 @@ class FilterParams:
     min_neighbours: int = 3
 
 
+LIVE_CPU_SHARE = 0.5
+"""Share of a core that failing detection attempts may take on a real-time source."""
+
+
 @dataclass(frozen=True)
 class DetectorParams:
     """Temporal + spatial detection (Sec. IV-B)."""
@@ -32,11 +36,13 @@ class DetectorParams:
     """DFT window T: two blink periods at 60 Hz are enough to lock (the paper's 0.5 s made the
     receiver wait half a second before it could read anything)."""
     retry_us: int = 35_000
-    """Interval between detection attempts, each over the latest window: the marker locks
+    """Event time between detection attempts, each over the latest window: the marker locks
     within about a window plus a retry of coming into view."""
-    max_cpu_share: float = 0.5
-    """Failed attempts are spaced further apart when they cost more than this share of one
-    core: on a megapixel sensor an attempt over a crowded window takes longer than the window."""
+    max_cpu_share: float | None = None
+    """Real-time sources only (``LIVE_CPU_SHARE``): failed attempts are spaced further apart when
+    they cost more than this share of one core (on a megapixel sensor an attempt over a crowded
+    window takes longer than the window). None keeps the spacing in event time alone, so that a
+    recording decodes the same on any machine."""
     sigma_frac: float = 0.1
     """Width of the triplet-period Gaussian, as a fraction of the blink frequency."""
     heat_threshold: float = 0.2
@@ -54,7 +60,15 @@ class DetectorParams:
     min_harmonic_ratio: float = 0.08
     """|X_k| / X_0 of the ROI's signed event count; noise gives ~1/sqrt(events), ``fast`` ~0.15."""
     min_orientation_score: float = 0.25
-    """Contrast between the expected white and black cells of the inner locator."""
+    """Lead of the best rotation's contrast between the inner locator's expected white and black
+    cells over the runner-up's."""
+    min_lock_fit_ratio: float = 0.6
+    """Under motion, a lock stands only if this share of the events near the ring lie on its
+    edges while the buffered events are tracked (a still camera's ring fires only noise)."""
+    min_lock_locator_score: float = 0.5
+    """Under motion, a lock stands only if a buffered frame reads the inner locator at this
+    contrast (``DecoderParams.min_locator_score`` for a still camera): correct locks read
+    ~0.6, rotated ones or ring fits a ring width off ~0.35."""
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,13 @@
 """Marker detection (paper Sec. IV-B): where it blinks, when it blinks, and which way is up.
 
+Two paths share the first step, a coarse blink map: per tile of ``TILE_PX`` pixels, the events'
+DFT at the blink frequency over the window. Its largest blinking region gives a box and the burst
+phase, and the burst nearest the window's end, motion-compensated inside that box
+(``locate.compensated_burst``), gives the image flow. A still camera (zero flow) takes the
+paper's path below; a moving one takes ``_detect_moving``.
+
+Still camera:
+
 1. *Temporal.* Per pixel, polarity-alternation triplets (pos-neg-pos or neg-pos-neg) whose period
    is close to the blink period vote into a heat map; its largest blob is the region of interest.
    The phase of the ROI's positive-event count at the blink frequency (DFT bin ``f * T``, not a
@@ -9,6 +17,13 @@
    quadrilateral must pass the paper's criteria (four corners, large, right angles, equal sides).
 3. *Orientation.* The ring of the inner locator (solid "L" at bottom-left, dashed top and right)
    is read in all four rotations; the best match orders the corners TL, TR, BR, BL.
+
+Moving camera: per-pixel triplets break once the marker slides a cell per blink, so everything
+comes from the one compensated burst and its fitted locator square (``locate``). The square is
+only a start for the ring's edges, one cell wide, and it ignores perspective: a few scaled copies
+of it are each pulled onto the ring's edge events around the burst (``EdgeTracker.capture``), and
+the pose that puts the most events on the edges wins. The locator's "L" is then read through
+that pose.
 """
 
 from __future__ import annotations
@@ -20,20 +35,58 @@ import numba
 import numpy as np
 
 from occ.marker import MarkerGeometry
-from receiver.pipeline.buffer import first_at
+from receiver.pipeline.buffer import first_at, to_columns
 from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.locate import MarkerNotFound, check_quadrilateral, quadrilateral
+from receiver.pipeline.locate import (
+    Box,
+    CompensatedBurst,
+    MarkerNotFound,
+    check_quadrilateral,
+    compensated_burst,
+    events_between,
+    fit_square,
+    locator_blob,
+    quadrilateral,
+)
+from receiver.pipeline.pose import pnp, project_ideal
+from receiver.pipeline.tracker import EdgeTracker
+
+TILE_PX = 8
+"""Side of the blink map's tiles: a couple of cells at the smallest accepted marker."""
+_MIN_TILE_RATIO = 0.25
+"""|X_k| / X_0 of a tile's signed events for it to blink: ON bursts and OFF bursts half a period
+later add up, swept edges (both polarities at any phase) do not; ~0.5 in the payload."""
+_BUSY_TILE_SHARE = 0.1
+"""Tiles with fewer events than this share of the busiest ones are noise, whatever their DFT."""
+_CAPTURE_SCALES = (1.0, 0.96, 1.04)
+"""Scales of the fitted locator square tried as capture starts: a start about a ring width off
+pulls the ring's inner edge onto the outer one (or the locator's), so neighbours are tried too."""
+_CAPTURE_HALF_US = 1000
+"""Half the span of edge events a capture uses: the ring moves about a pixel per ms."""
+_ON_EDGE_PX = 1.0
+"""An event within this distance of a projected ring edge counts as on it (capture scoring)."""
 
 
 @dataclass(frozen=True)
 class Detection:
     corners_px: np.ndarray
-    """(4, 2) outer corners of the inner locator in sensor pixels, TL, TR, BR, BL."""
+    """(4, 2) outer corners of the inner locator in sensor pixels, TL, TR, BR, BL, at ``t_us``."""
+    T_cam_world: np.ndarray
+    """Pose at ``t_us``."""
+    t_us: int
+    """When the corners and the pose hold: the window's end for a still camera, the
+    compensated burst under motion."""
     burst_us: float
     """Time of a positive burst of the inner locator (middle of the marker's scan-out)."""
     blink_hz: float
     harmonic_ratio: float
     orientation_score: float
+    flow_px_per_ms: np.ndarray
+    """Image flow found at the burst; zero for a still camera."""
+
+    @property
+    def moving(self) -> bool:
+        return bool(np.any(self.flow_px_per_ms))
 
 
 # --- temporal ------------------------------------------------------------------------------
@@ -142,6 +195,72 @@ def blink_phase(
     return float(t_start + phase / (2 * np.pi) * period_us), float(abs(x_k) / len(t))
 
 
+@numba.njit(cache=True, nogil=True)
+def _tile_harmonics(t, x, y, p, t0, period_us, acc):
+    """Add to ``acc`` per tile: the signed events' DFT at the blink frequency (re, im), their
+    count, and the same three for the ON events alone; events before ``t0`` are skipped."""
+    w = 2 * np.pi / period_us
+    for i in range(t.shape[0]):
+        if t[i] < t0:
+            continue
+        a = w * (t[i] - t0)
+        ty, tx = y[i] // TILE_PX, x[i] // TILE_PX
+        c, s = np.cos(a), -np.sin(a)
+        acc[0, ty, tx] += p[i] * c
+        acc[1, ty, tx] += p[i] * s
+        acc[2, ty, tx] += 1.0
+        if p[i] > 0:
+            acc[3, ty, tx] += c
+            acc[4, ty, tx] += s
+            acc[5, ty, tx] += 1.0
+
+
+@dataclass(frozen=True)
+class BlinkRegion:
+    box: Box
+    """Sensor box around the largest blinking region, one tile of margin."""
+    burst_us: float
+    harmonic_ratio: float
+
+
+def blinking_region(parts: list[np.ndarray], config: ReceiverConfig) -> BlinkRegion:
+    """The largest 8-connected region of tiles whose events pulse at the blink frequency, over
+    the latest whole blink periods of the window, and the phase of its ON events.
+
+    Tiles are coarse enough that a marker sliding several cells per blink still blinks in them,
+    and a tile's signed DFT needs no per-pixel history."""
+    cam, period = config.camera, 1e6 / config.blink_hz
+    t_end = int(parts[-1]["t"][-1])
+    span = max(1, int((t_end - int(parts[0]["t"][0])) // period)) * period
+    t0 = int(t_end - span)
+    acc = np.zeros((6, -(-cam.height // TILE_PX), -(-cam.width // TILE_PX)))
+    for ev in parts:
+        _tile_harmonics(ev["t"], ev["x"], ev["y"], ev["p"], t0, period, acc)
+    count = acc[2]
+    ratio = np.hypot(acc[0], acc[1]) / np.maximum(count, 1.0)
+    busy = count >= _BUSY_TILE_SHARE * np.percentile(count, 99)
+    # Random phases give a ratio of about 1 / sqrt(count): a tile must stand well above that.
+    enough = ratio >= np.maximum(_MIN_TILE_RATIO, 3.0 / np.sqrt(np.maximum(count, 1.0)))
+    blinking = (busy & enough).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(blinking, connectivity=8)
+    if n < 2:
+        raise MarkerNotFound(
+            f"temporal: nothing blinks at {config.blink_hz:g} Hz; check --refresh-hz and --profile"
+        )
+    region = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    x_k = complex(acc[3][region].sum(), acc[4][region].sum())
+    on = acc[5][region].sum()
+    phase = (2 * np.pi - np.angle(x_k)) % (2 * np.pi)
+    tx, ty, tw, th = cv2.boundingRect(region.astype(np.uint8))
+    box = Box(
+        max(0, (tx - 1) * TILE_PX),
+        max(0, (ty - 1) * TILE_PX),
+        min(cam.width, (tx + tw + 1) * TILE_PX),
+        min(cam.height, (ty + th + 1) * TILE_PX),
+    )
+    return BlinkRegion(box, t0 + phase / (2 * np.pi) * period, abs(x_k) / max(on, 1.0))
+
+
 # --- spatial ---------------------------------------------------------------------------------
 def ring_cells(geometry: MarkerGeometry) -> tuple[np.ndarray, np.ndarray]:
     """(k, 2) (column, row) of the inner locator's ring cells and their canonical colour."""
@@ -152,29 +271,42 @@ def ring_cells(geometry: MarkerGeometry) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([cols, rows], 1), loc[rows, cols]
 
 
+_CELL_SAMPLES = 6
+"""Samples per cell side when the burst image is warped onto the locator grid."""
+
+
+def locator_cells(corners: np.ndarray, image: np.ndarray, side: int) -> np.ndarray:
+    """(side, side) share of lit pixels in the inner half of each locator cell, the grid spanned
+    by ``corners`` (TL, TR, BR, BL of the locator in ``image``'s pixels). Cell centres alone
+    mislead at a few pixels per cell: blur and motion light up the edges of black cells."""
+    size = side * _CELL_SAMPLES
+    grid = np.array([[0, 0], [size, 0], [size, size], [0, size]], np.float32)
+    H = cv2.getPerspectiveTransform(grid, corners.astype(np.float32))
+    flat = cv2.warpPerspective(
+        image.astype(np.float32), H, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    )
+    inner = slice(_CELL_SAMPLES // 4, _CELL_SAMPLES - _CELL_SAMPLES // 4)
+    return flat.reshape(side, _CELL_SAMPLES, side, _CELL_SAMPLES)[:, inner, :, inner].mean(
+        axis=(1, 3)
+    )
+
+
 def orient(
     quad: np.ndarray, burst: np.ndarray, geometry: MarkerGeometry
 ) -> tuple[np.ndarray, float]:
-    """Rotate the corner order so that the inner locator reads canonically; (corners, score)."""
-    n = geometry.locator_side
+    """Rotate the corner order so that the inner locator reads canonically; (corners, score).
+
+    A rotation reads as the mean lit share of the ring's white cells minus that of its black
+    ones; the score is the best reading's lead over the runner-up, since under motion or blur
+    every rotation can read a little above zero and only a clear lead names the "L"."""
     cells, white = ring_cells(geometry)
-    canonical = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float64)
-    centres = (cells + 0.5).reshape(-1, 1, 2)
-    # Average over at most half a cell, so that small cells do not blur into their neighbours.
-    cell_px = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).mean() / n
-    k = max(1, int(cell_px / 2) | 1)
-    blurred = cv2.blur(burst.astype(np.float32), (k, k))
-    best = (-np.inf, quad)
+    readings = []
     for r in range(4):
         corners = np.roll(quad, -r, axis=0)
-        H = cv2.getPerspectiveTransform(canonical.astype(np.float32), corners.astype(np.float32))
-        px = cv2.perspectiveTransform(centres, H).reshape(-1, 2)
-        xi = np.clip(np.rint(px[:, 0]).astype(int), 0, burst.shape[1] - 1)
-        yi = np.clip(np.rint(px[:, 1]).astype(int), 0, burst.shape[0] - 1)
-        on = blurred[yi, xi] > 0.5
-        score = on[white].mean() - on[~white].mean()
-        best = max(best, (score, corners), key=lambda b: b[0])
-    return best[1], float(best[0])
+        lit = locator_cells(corners, burst, geometry.locator_side)[cells[:, 1], cells[:, 0]]
+        readings.append(lit[white].mean() - lit[~white].mean())
+    best, runner_up = np.argsort(readings)[::-1][:2]
+    return np.roll(quad, -best, axis=0), float(readings[best] - readings[runner_up])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -225,10 +357,27 @@ def burst_image(
 def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Detection:
     """Find the marker in ``events`` (a window of about ``detector.window_us``), given as one
     array or as its time-ordered parts (the receiver's buffered chunks, never copied)."""
-    params, cam = config.detector, config.camera
     parts = [p for p in ([events] if isinstance(events, np.ndarray) else events) if len(p)]
     if sum(len(p) for p in parts) < 100:
         raise MarkerNotFound("temporal: almost no events in the detection window")
+    try:
+        region = blinking_region(parts, config)
+        burst = compensated_burst(parts, region.burst_us, 1e6 / config.blink_hz, region.box)
+    except MarkerNotFound:  # the still path says why in its own, finer terms
+        return _detect_still(parts, config)
+    if not np.any(burst.flow):
+        return _detect_still(parts, config)
+    if not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
+        raise MarkerNotFound(
+            f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
+            f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
+        )
+    return _detect_moving(parts, burst, region, config)
+
+
+def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
+    """The paper's path: per-pixel triplets, the locator band's phase, the phase-locked image."""
+    params, cam = config.detector, config.camera
     heat, triplets = blink_heatmap(parts, cam.width, cam.height, config.blink_hz, params.sigma_frac)
     hull = largest_region(heat, params.heat_threshold)
     mask = np.zeros((cam.height, cam.width), np.uint8)
@@ -266,4 +415,82 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
         )
     # The burst time refers to the latest whole period inside the window.
     last = burst + np.floor((t_end - burst) / period) * period
-    return Detection(corners, float(last), config.blink_hz, ratio, score)
+    T = _solve_pnp(corners, config)
+    return Detection(corners, T, t_end, float(last), config.blink_hz, ratio, score, np.zeros(2))
+
+
+def _solve_pnp(corners: np.ndarray, config: ReceiverConfig) -> np.ndarray:
+    world = config.geometry.locator_corners(config.marker_size_m)
+    try:
+        return pnp(corners, world, config.camera)
+    except ValueError as exc:  # a degenerate quadrilateral
+        raise MarkerNotFound(f"spatial: {exc}") from exc
+
+
+def _detect_moving(
+    parts: list[np.ndarray], burst: CompensatedBurst, region: BlinkRegion, config: ReceiverConfig
+) -> Detection:
+    """Blob, fitted square, ring capture and "L", all at the compensated burst's time."""
+    params, geo = config.detector, config.geometry
+    origin = np.array([burst.box.x0, burst.box.y0])
+    # The blob's own size sets the cell size: a first guess from the box, then from its outline.
+    cell_px = min(burst.box.shape) / (2 * geo.locator_side)
+    for _ in range(2):
+        quad = quadrilateral(locator_blob(burst.image, cell_px))
+        cell_px = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).mean() / geo.locator_side
+    quad = fit_square(burst.image, quad, geo.locator_side, geo.ring) + origin
+    check_quadrilateral(quad, params)
+    tb = round(burst.t_us)
+    T = _capture_ring(parts, quad, tb, config)
+    world = geo.locator_corners(config.marker_size_m)
+    corners = config.camera.project(world @ T[:3, :3].T + T[:3, 3])
+    oriented, score = orient(corners - origin, burst.image, geo)
+    if score < params.min_orientation_score:
+        raise MarkerNotFound(
+            f"spatial: no inner-locator 'L' found under motion (score {score:.2f}); check --cells"
+        )
+    oriented = oriented + origin
+    return Detection(
+        oriented,
+        _solve_pnp(oriented, config),
+        tb,
+        burst.t_us,
+        config.blink_hz,
+        region.harmonic_ratio,
+        score,
+        burst.flow,
+    )
+
+
+def _capture_ring(
+    parts: list[np.ndarray], quad: np.ndarray, t_us: int, config: ReceiverConfig
+) -> np.ndarray:
+    """The pose at ``t_us`` that puts the most ring-edge events on the ring's edges, from
+    captures started at scaled copies of the locator's quadrilateral (any rotation: the ring is
+    square)."""
+    events = events_between(parts, t_us - _CAPTURE_HALF_US, t_us + _CAPTURE_HALF_US)
+    cols = to_columns(events, config.camera.undistort_table)
+    xu, yu = cols["xu"], cols["yu"]
+    centre = quad.mean(axis=0)
+    best, best_on = None, -1
+    for scale in _CAPTURE_SCALES:
+        start = _solve_pnp(centre + scale * (quad - centre), config)
+        tracker = EdgeTracker(config, start, t_us)
+        if not tracker.capture(xu, yu, t_us):
+            continue
+        on = _events_on_edges(tracker.T_cam_world, xu, yu, config)
+        if on > best_on:
+            best, best_on = tracker.T_cam_world, on
+    if best is None:
+        raise MarkerNotFound("spatial: too few ring-edge events around the burst to fit the ring")
+    return best
+
+
+def _events_on_edges(T: np.ndarray, xu: np.ndarray, yu: np.ndarray, config: ReceiverConfig) -> int:
+    """How many of the (ideal-pixel) points lie within ``_ON_EDGE_PX`` of a ring edge."""
+    edges = project_ideal(T, config.camera.K, config.geometry.tracked_edges(config.marker_size_m))
+    a, d = edges[:, 0], edges[:, 1] - edges[:, 0]  # (8, 2)
+    pts = np.stack([xu, yu], axis=1)[:, None, :].astype(np.float64)  # (n, 1, 2)
+    w = np.clip(np.sum((pts - a) * d, axis=2) / np.sum(d * d, axis=1), 0.0, 1.0)
+    dist = np.linalg.norm(a + w[..., None] * d - pts, axis=2).min(axis=1)
+    return int(np.count_nonzero(dist <= _ON_EDGE_PX))

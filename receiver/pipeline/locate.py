@@ -10,15 +10,19 @@ locator is found in a single data-frame burst (the paper's window of +-0.2 perio
 2. *Blink image.* ON events of the burst, warped to its time, minus those of the two windows half a
    period away (the blank frames, where only motion fires ON): the ring's swept edges cancel.
 3. *Blob.* A closing joins the payload and locator cells into one blob and an opening removes the
-   thin remains of swept edges; its convex quadrilateral is the locator's outline.
+   thin remains of swept edges; its convex quadrilateral is the locator's outline, to a cell or
+   so: blur makes cells light up their dark neighbours, and leftovers of swept edges stick to it.
+4. *Square.* The square that best separates the lit locator ring from the dark ring around it
+   (``fit_square``) pins the outline to a pixel or two (the square ignores perspective: the
+   detector's ring capture adds it).
 
-Not yet wired into ``detector.detect``: the outline is found to a few pixels under motion, but
-reading the locator's orientation from the compensated image is still unreliable (about half of
-the windows of a 0.5 px/ms hand-held clip pick a wrong rotation), so a lock would often start
-rotated. ``quadrilateral`` and ``check_quadrilateral`` serve both paths.
+Everything works in a box of the sensor around the blinking region (``Box``): contrast
+maximisation tries a few hundred flows, each a histogram and a blur of the box.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -33,38 +37,66 @@ _MIN_GAIN = 1.05
 """A flow must sharpen the image by this factor over zero flow, or the camera counts as still."""
 HALF_WINDOW = 0.2
 """Half-width of a burst window in blink periods (paper Sec. IV-B)."""
+_SQUARE_SHIFTS_PX = np.arange(-6.0, 6.5, 1.0)
+_SQUARE_SCALES = np.arange(0.84, 1.07, 0.02)
+"""The blob is up to a cell and a half larger than the locator on each side."""
+_SQUARE_TURNS = np.radians([-3.0, -1.5, 0.0, 1.5, 3.0])
 
 
 class MarkerNotFound(Exception):
     """Detection failed; the message says which stage and why."""
 
 
-def _select(parts: list[np.ndarray], t0: float, t1: float) -> np.ndarray:
-    """The events of the time-ordered parts in [t0, t1)."""
+@dataclass(frozen=True)
+class Box:
+    """A sensor region: columns ``x0 <= x < x1``, rows ``y0 <= y < y1``."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.y1 - self.y0, self.x1 - self.x0
+
+
+@dataclass(frozen=True)
+class CompensatedBurst:
+    image: np.ndarray
+    """Boolean image of the box: pixels that brighten with the burst, motion undone."""
+    box: Box
+    t_us: float
+    """The burst's time, to which every event was warped."""
+    flow: np.ndarray
+    """Image flow (vx, vy) in px/ms; zero for a still camera."""
+
+
+def events_between(parts: list[np.ndarray], t0: float, t1: float) -> np.ndarray:
+    """The events of the time-ordered parts in [t0, t1), as one array."""
     out = [p[np.searchsorted(p["t"], t0) : np.searchsorted(p["t"], t1)] for p in parts]
     out = [p for p in out if len(p)]
     return np.concatenate(out) if out else parts[0][:0]
 
 
-def warped_counts(
-    events: np.ndarray, t_ref: float, flow: np.ndarray, shape: tuple[int, int]
-) -> np.ndarray:
-    """Event counts per pixel after moving each event along ``flow`` (px/ms) to ``t_ref``."""
-    h, w = shape
+def warped_counts(events: np.ndarray, t_ref: float, flow: np.ndarray, box: Box) -> np.ndarray:
+    """Event counts per pixel of ``box`` after moving each event along ``flow`` (px/ms) to
+    ``t_ref``."""
+    h, w = box.shape
     dt = (t_ref - events["t"]) / 1000.0
-    x = np.rint(events["x"] + flow[0] * dt).astype(np.int64)
-    y = np.rint(events["y"] + flow[1] * dt).astype(np.int64)
+    x = np.rint(events["x"] + flow[0] * dt).astype(np.int64) - box.x0
+    y = np.rint(events["y"] + flow[1] * dt).astype(np.int64) - box.y0
     ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
     return np.bincount(y[ok] * w + x[ok], minlength=h * w).reshape(h, w).astype(np.float32)
 
 
-def motion_flow(events: np.ndarray, t_ref: float, shape: tuple[int, int]) -> np.ndarray:
+def motion_flow(events: np.ndarray, t_ref: float, box: Box) -> np.ndarray:
     """(vx, vy) px/ms that makes ``events`` sharpest when warped to ``t_ref``: a coarse grid,
     then finer ones around the best."""
     sample = events[:: max(1, len(events) // _FLOW_SAMPLE)]
 
     def sharpness(v: np.ndarray) -> float:
-        img = cv2.GaussianBlur(warped_counts(sample, t_ref, v, shape), (0, 0), 1.0)
+        img = cv2.GaussianBlur(warped_counts(sample, t_ref, v, box), (0, 0), 1.0)
         return float(np.square(img).sum())
 
     zero = np.zeros(2)
@@ -79,23 +111,20 @@ def motion_flow(events: np.ndarray, t_ref: float, shape: tuple[int, int]) -> np.
 
 
 def compensated_burst(
-    parts: list[np.ndarray], burst_us: float, period_us: float, shape: tuple[int, int]
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """(blink image, its time, flow px/ms) of the latest burst whose following half period is in
-    ``parts``: pixels with more ON events in the burst than in either blank frame beside it, all
-    warped to the burst time."""
+    parts: list[np.ndarray], burst_us: float, period_us: float, box: Box
+) -> CompensatedBurst:
+    """The latest burst whose following half period is in ``parts``: pixels of ``box`` with
+    more ON events in the burst than in either blank frame beside it, all warped to the burst
+    time."""
     half = HALF_WINDOW * period_us
     t_end = float(parts[-1]["t"][-1])
     tb = burst_us + np.floor((t_end - period_us / 2 - half - burst_us) / period_us) * period_us
-    burst = _select(parts, tb - half, tb + half)
-    flow = motion_flow(burst[burst["p"] < 0], tb, shape)
-    on = [
-        warped_counts(ev[ev["p"] > 0], tb, flow, shape)
-        for ev in (
-            _select(parts, tb + d - half, tb + d + half) for d in (0, -period_us / 2, period_us / 2)
-        )
-    ]
-    return on[0] - np.maximum(on[1], on[2]) >= 1, float(tb), flow
+    burst = events_between(parts, tb - half, tb + half)
+    flow = motion_flow(burst[burst["p"] < 0], tb, box)
+    blank = period_us / 2  # the blank frames' switches, where only motion fires ON
+    windows = (events_between(parts, tb + d - half, tb + d + half) for d in (0, -blank, blank))
+    on = [warped_counts(ev[ev["p"] > 0], tb, flow, box) for ev in windows]
+    return CompensatedBurst(on[0] - np.maximum(on[1], on[2]) >= 1, box, float(tb), flow)
 
 
 def locator_blob(image: np.ndarray, cell_px: float) -> np.ndarray:
@@ -110,6 +139,58 @@ def locator_blob(image: np.ndarray, cell_px: float) -> np.ndarray:
         raise MarkerNotFound("spatial: nothing brightens with the bursts as a solid blob")
     biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     return np.argwhere(labels == biggest)[:, ::-1]
+
+
+def _square_outline(half: float, per_side: int = 24) -> np.ndarray:
+    """(4 * per_side, 2) points along the sides of the square of half-side ``half`` around 0."""
+    s = ((np.arange(per_side) + 0.5) / per_side * 2 - 1) * half
+    a = np.full(per_side, half)
+    return np.vstack([np.c_[s, -a], np.c_[a, s], np.c_[-s, a], np.c_[-a, -s]])
+
+
+def fit_square(image: np.ndarray, quad: np.ndarray, locator_side: int, ring: int) -> np.ndarray:
+    """(4, 2) corners of the square, near ``quad``, whose inner band (the locator ring's cells)
+    is the most lit and whose outer band (the dark ring around the locator) the least, in the
+    blurred ``image``; a grid of shifts, scales and turns, then two finer ones."""
+    lit = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
+    inner = _square_outline(0.5 - 0.5 / locator_side)
+    outer = _square_outline(0.5 + 0.5 * ring / locator_side)
+    sides = np.roll(quad, -1, axis=0) - quad
+    side = np.linalg.norm(sides, axis=1).mean()
+    # Mean direction of the sides modulo 90 degrees.
+    turn = np.angle(np.mean(np.exp(4j * np.arctan2(sides[:, 1], sides[:, 0])))) / 4
+
+    def contrast(h: np.ndarray) -> np.ndarray:
+        """Inner minus outer band brightness of squares h = (cx, cy, side, turn), (k, 4)."""
+        c, s = np.cos(h[:, 3:]), np.sin(h[:, 3:])
+        band = []
+        for u in (inner, outer):
+            x = h[:, :1] + h[:, 2:3] * (c * u[:, 0] - s * u[:, 1])
+            y = h[:, 1:2] + h[:, 2:3] * (s * u[:, 0] + c * u[:, 1])
+            xi = np.clip(np.rint(x).astype(np.int64), 0, lit.shape[1] - 1)
+            yi = np.clip(np.rint(y).astype(np.int64), 0, lit.shape[0] - 1)
+            band.append(lit[yi, xi].mean(axis=1))
+        return band[0] - band[1]
+
+    def grid(*axes: np.ndarray) -> np.ndarray:
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
+
+    centre = quad.mean(axis=0)
+    h = grid(
+        centre[0] + _SQUARE_SHIFTS_PX,
+        centre[1] + _SQUARE_SHIFTS_PX,
+        side * _SQUARE_SCALES,
+        turn + _SQUARE_TURNS,
+    )
+    best = h[np.argmax(contrast(h))]
+    for step in (0.5, 0.25):
+        k = np.arange(-2, 3) * step
+        h = best + grid(k, k, k * 0.02 * side, np.radians(k))
+        best = h[np.argmax(contrast(h))]
+    cx, cy, length, angle = best
+    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    unit = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+    return np.array([cx, cy]) + length * unit @ rotation.T
 
 
 def quadrilateral(points: np.ndarray) -> np.ndarray:

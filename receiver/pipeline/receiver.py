@@ -5,6 +5,10 @@ completed messages and state changes, in time order. The live daemon and the off
 command share it. The stream decoder survives tracking losses, so symbols gathered before a loss
 still count towards the message.
 
+Detection attempts are spaced in event time (``DetectorParams.retry_us``), so a recording decodes
+the same on any machine; only a real-time source also spaces them by their CPU cost. A detection
+becomes a lock only once the frames still buffered verify it (``Receiver._unverified``).
+
 Only one stage touches every event while the marker is tracked: the compiled triage
 (``triage.EventTriage``), which keeps each pixel's latest burst times for the decoder and hands
 the tracker the events near its edges. Detection reads the buffered raw chunks of its window;
@@ -26,9 +30,9 @@ from occ.stream import ReceivedMessage, StreamDecoder
 from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.decoder import CellReader, FrameRead
-from receiver.pipeline.detector import MarkerNotFound, detect
+from receiver.pipeline.detector import Detection, MarkerNotFound, detect
 from receiver.pipeline.filters import EventFilter
-from receiver.pipeline.pose import pnp, project_ideal
+from receiver.pipeline.pose import project_ideal
 from receiver.pipeline.tracker import EdgeTracker
 from receiver.pipeline.triage import EventTriage
 from receiver.poses import invert
@@ -150,41 +154,85 @@ class Receiver:
             self._next_attempt_us = span[0] + window
         if now < self._next_attempt_us:
             return []
-        q = self.config.detector
         cpu0 = time.process_time()
-        with self._cpu("detect"):
-            try:
+        try:
+            with self._cpu("detect"):
                 found = detect(self._buffer.parts_between(now - window, now + 1), self.config)
-                geo = self.config.geometry
-                world = geo.locator_corners(self.config.marker_size_m)
-                T = pnp(found.corners_px, world, self.config.camera)
-            except (MarkerNotFound, ValueError) as exc:
-                self.stats.detection_failures[str(exc)] += 1
-                log.debug("detection at %d us: %s", now, exc)
-                # Space the attempts so that failing ones take at most a share of a core.
-                spent_us = (time.process_time() - cpu0) * 1e6 / q.max_cpu_share
-                self._next_attempt_us = now + max(q.retry_us, int(spent_us))
-                return []
-        self._tracker = EdgeTracker(self.config, T, now)
-        with self._cpu("lock"):  # under motion the detected corners lag: snap to the ring
-            recent = self._buffer.between(now - self.config.tracker.capture_us, now + 1)
-            recent = to_columns(recent, self.config.camera.undistort_table)
-            if self._tracker.capture(recent["xu"], recent["yu"], now):
-                T = self._tracker.T_cam_world
+            return self._lock(found, now)
+        except MarkerNotFound as exc:
+            self._detection_failed(now, str(exc), time.process_time() - cpu0)
+            return []
+
+    def _detection_failed(self, now: int, reason: str, cpu_s: float) -> None:
+        """Count the failure and schedule the next attempt ``retry_us`` of event time later (so
+        a recording gives the same result on any machine); a live source also spaces them so
+        that failing ones take at most ``max_cpu_share`` of a core."""
+        q = self.config.detector
+        self.stats.detection_failures[reason] += 1
+        log.debug("detection at %d us: %s", now, reason)
+        wait_us = q.retry_us
+        if q.max_cpu_share is not None:
+            wait_us = max(wait_us, int(cpu_s * 1e6 / q.max_cpu_share))
+        self._next_attempt_us = now + wait_us
+
+    def _lock(self, found: Detection, now: int) -> list[Output]:
+        """Start tracking from ``found`` and read the frames still buffered. The lock stands
+        only if the inner locator shows in one of them and tracking survives them; otherwise
+        this raises ``MarkerNotFound`` (a failed detection, not a loss)."""
+        T, t_lock = found.T_cam_world, found.t_us
+        self._tracker = EdgeTracker(self.config, T, t_lock)
+        if not found.moving:
+            with self._cpu("lock"):  # a still detection may lag a slow drift: snap to the ring
+                recent = self._buffer.between(now - self.config.tracker.capture_us, now + 1)
+                recent = to_columns(recent, self.config.camera.undistort_table)
+                if self._tracker.capture(recent["xu"], recent["yu"], now):
+                    T = self._tracker.T_cam_world
         self._reader = CellReader(self.config, found.burst_us)
         self._triage.reset(now)
-        # Frames inside the detection window are still buffered: read them too.
-        self._next_frame = -int(window // self.config.frame_us) + 1
+        # Frames inside the detection window are still buffered: read them too. Under motion the
+        # pose holds at the compensated burst (frame 0) and is tracked from there to now.
+        window = self.config.detector.window_us
+        self._next_frame = 0 if found.moving else -int(window // self.config.frame_us) + 1
         self._missed = 0
-        self._pose_t, self._pose_T = [now], [T]
+        self._pose_t, self._pose_T = [t_lock], [T]
         self.state = TRACKING
-        self.stats.lock_times_us.append(now)
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
-        out.append(self._pose_output(now, T))
+        out.append(self._pose_output(t_lock, T))
         first = self._reader.window(self._next_frame)[0] - self._triage.gap_us
-        for part in self._buffer.parts_between(first, now + 1):
+        track_from = t_lock if found.moving else now + 1
+        losses = self.stats.losses  # a lock lost on its own buffered events never stood
+        for part in self._buffer.parts_between(first, track_from):
             out += self._follow(part, track=False)
+        for part in self._buffer.parts_between(track_from, now + 1):
+            out += self._follow(part)
+        frames = [o for o in out if isinstance(o, FrameOutput)]
+        if self.state != TRACKING:
+            self.stats.losses = losses
+            reason = out[-1].reason
+            raise MarkerNotFound(f"verify: tracking failed on the buffered events ({reason})")
+        reason = self._unverified(found, frames)
+        if reason:
+            self.state = DETECTING
+            self._tracker = self._reader = None
+            raise MarkerNotFound(reason)
+        self.stats.lock_times_us.append(now)
         return out
+
+    def _unverified(self, found: Detection, frames: list[FrameOutput]) -> str | None:
+        """Why the lock on ``found`` does not stand, given the frames read from the buffer.
+
+        Under motion a lock must show the inner locator clearly (a ring fit a ring width off, or
+        a wrong rotation, still reads at half the contrast) and keep the tracker on the ring's
+        edges; a still lock only needs the locator to show."""
+        q = self.config.detector
+        best = max((f.read.locator_score for f in frames), default=None)
+        need = q.min_lock_locator_score if found.moving else self.config.decoder.min_locator_score
+        if best is not None and best < need:
+            return f"verify: the inner locator reads at {best:.2f} at the detected pose"
+        fit = self._tracker.fit_ratio
+        if found.moving and fit is not None and fit < q.min_lock_fit_ratio:
+            return f"verify: only {fit:.0%} of the events near the ring lie on its edges"
+        return None
 
     def _follow(self, events: np.ndarray, track: bool = True) -> list[Output]:
         """Triage ``events`` in short segments, cut where a frame's time span ends, so that each
