@@ -117,6 +117,9 @@ class HealthReport(_Model):
     """Share of one core the receiver used (may exceed 1 with several threads)."""
     events_per_s: Annotated[float, Field(ge=0.0)]
     state: TrackingState
+    source_speed: Annotated[float, Field(ge=0.0)] | None = None
+    """Seconds of events the source delivers per wall-clock second, for a source that can fall
+    behind real time (the virtual camera); below 1 it skips ahead to stay live."""
 
 
 class SurfaceReport(_Model):

@@ -9,15 +9,20 @@ The pipeline sees every event; what leaves it is thinned for each audience:
   segment), every finished message (durable), each frame's statistics, and a few times a
   second progress, health and a time-surface thumbnail (ephemeral news: while the server is
   away, only the newest of each kind waits).
+
+A source that knows what the screen sends (the virtual camera) makes the daemon follow the
+transmitter: when its link settings change, a ``LinkFollower`` rebuilds the pipeline for them,
+except for the settings the user pinned.
 """
 
 from __future__ import annotations
 
 import base64
 import logging
+import sys
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -36,11 +41,14 @@ from occ.report import (
 )
 from receiver.pipeline.receiver import FrameOutput, MessageOutput, Output, PoseEstimate, StateChange
 from receiver.poses import format_seconds, pose_to_tum_row
-from receiver.sources import EventSource
+from receiver.sources import EventSource, LinkSettings
 
 log = logging.getLogger(__name__)
 
 PIPELINE_STATES = {"detecting": TrackingState.SCANNING, "tracking": TrackingState.TRACKING}
+SWITCH_INTERVAL_S = 0.001
+"""How long the pipeline thread may hold the interpreter while the publisher thread waits for
+it, during ``Daemon.run`` (Python's default is 5 ms: that much added to a report's latency)."""
 
 
 class Progress(Protocol):
@@ -77,6 +85,53 @@ class DaemonConfig:
             raise ValueError(f"rates must be positive, got {self.pose_hz}, {self.news_hz} Hz")
 
 
+class LinkFollower:
+    """Keeps the pipeline built for what the transmitter sends, but for what the user pinned
+    (``--profile``, ``--cells``)."""
+
+    def __init__(
+        self,
+        build: Callable[[LinkSettings], Pipeline],
+        sending: LinkSettings,
+        *,
+        profile: str | None = None,
+        cells: int | None = None,
+    ) -> None:
+        self.build = build
+        self.pinned = (profile, cells)
+        self.receiving = self.settings_for(sending)
+        """What the current pipeline is built for."""
+
+    def settings_for(self, sending: LinkSettings) -> LinkSettings:
+        profile, cells = self.pinned
+        return LinkSettings(profile or sending.profile, cells or sending.cells)
+
+    def pipeline(self) -> Pipeline:
+        return self.build(self.receiving)
+
+    def follow(self, sending: LinkSettings) -> Pipeline | None:
+        """A pipeline rebuilt for ``sending``, or None if the current one still fits."""
+        wanted = self.settings_for(sending)
+        if wanted != sending:
+            log.warning(
+                "the transmitter sends %s with %d cells but the receiver is pinned to %s with "
+                "%d: drop --profile/--cells to follow it",
+                sending.profile,
+                sending.cells,
+                wanted.profile,
+                wanted.cells,
+            )
+        if wanted == self.receiving:
+            return None
+        log.info(
+            "the transmitter switched to %s with %d cells: rebuilding the receiver for them",
+            wanted.profile,
+            wanted.cells,
+        )
+        self.receiving = wanted
+        return self.pipeline()
+
+
 @dataclass
 class DaemonSummary:
     chunks: int = 0
@@ -85,6 +140,8 @@ class DaemonSummary:
     poses_published: int = 0
     frames: int = 0
     messages: list[str] = field(default_factory=list)
+    rebuilds: int = 0
+    """Pipelines rebuilt because the transmitter changed its link settings."""
 
 
 class OutputFolder:
@@ -130,14 +187,18 @@ class Daemon:
         sink: Sink,
         output: OutputFolder,
         config: DaemonConfig | None = None,
+        follower: LinkFollower | None = None,
     ) -> None:
+        """Without a ``follower`` the pipeline stays as built, whatever the source says."""
         self.source = source
         self.pipeline = pipeline
         self.sink = sink
         self.output = output
         self.config = config or DaemonConfig()
+        self.follower = follower
         self.summary = DaemonSummary()
         self.state = TrackingState.IDLE
+        self._sending: LinkSettings | None = None
         self._last_pose_sent_us = -(1 << 62)
         self._next_news = 0.0
         self._rate = RateMeter()
@@ -146,10 +207,15 @@ class Daemon:
         """Process the source until it ends or ``stop`` is set."""
         log.info("receiving from %dx%d events", self.source.width, self.source.height)
         self.state = TrackingState.SCANNING
-        for chunk in self.source.chunks():
-            if stop is not None and stop.is_set():
-                break
-            self.process(chunk)
+        switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        try:
+            for chunk in self.source.chunks():
+                if stop is not None and stop.is_set():
+                    break
+                self.process(chunk)
+        finally:
+            sys.setswitchinterval(switch_interval)
         self.state = TrackingState.IDLE
         self.publish_news(None)
         return self.summary
@@ -158,10 +224,22 @@ class Daemon:
         self.summary.chunks += 1
         self.summary.events += len(chunk)
         self._rate.add(chunk)
+        self.follow_transmitter()
         self.handle(self.pipeline.push(chunk))
         if time.monotonic() >= self._next_news:
             self._next_news = time.monotonic() + 1.0 / self.config.news_hz
             self.publish_news(chunk)
+
+    def follow_transmitter(self) -> None:
+        """Rebuild the pipeline when the source says the screen's link settings changed."""
+        sending = getattr(self.source, "link", None)
+        if self.follower is None or sending is None or sending == self._sending:
+            return
+        self._sending = sending
+        if (pipeline := self.follower.follow(sending)) is not None:
+            self.pipeline = pipeline
+            self.summary.rebuilds += 1
+            self.state = TrackingState.SCANNING
 
     def handle(self, outputs: Iterable[Output]) -> None:
         poses: list[PoseEstimate] = []
@@ -219,7 +297,10 @@ class Daemon:
         for stream in self.pipeline.stream.progress().values():
             self.sink.publish(ProgressReport(**stream), durable=False)
         health = HealthReport(
-            cpu_load=self._rate.cpu_load(), events_per_s=self._rate.events_per_s, state=self.state
+            cpu_load=self._rate.cpu_load(),
+            events_per_s=self._rate.events_per_s,
+            state=self.state,
+            source_speed=getattr(self.source, "speed", None),
         )
         self.sink.publish(health, durable=False)
         self.output.write_health(health)

@@ -18,7 +18,15 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["EventSource", "RecordingSource", "SourceError", "open_source", "paced"]
+__all__ = [
+    "EventSource",
+    "LinkSettings",
+    "LiveClock",
+    "RecordingSource",
+    "SourceError",
+    "open_source",
+    "paced",
+]
 
 
 class SourceError(RuntimeError):
@@ -26,12 +34,74 @@ class SourceError(RuntimeError):
 
 
 class EventSource(Protocol):
+    """Optional extras, read by the daemon when present: ``link`` (``LinkSettings`` of what the
+    watched screen sends, for a source that knows it) and ``speed`` (seconds of events per
+    wall-clock second, for a source that can fall behind real time)."""
+
     width: int
     height: int
 
     def chunks(self) -> Iterator[np.ndarray]:
         """Event chunks (``receiver.events.EVENT_DTYPE``) in time order, until the source ends."""
         ...
+
+
+@dataclass(frozen=True)
+class LinkSettings:
+    """What the receiver pipeline must be told about the screen: its link profile and cells."""
+
+    profile: str
+    cells: int
+
+
+class LiveClock:
+    """Event time on the wall clock, so that events arrive as a live camera delivers them.
+
+    ``start(t_us)`` ties event time ``t_us`` to the wall clock's now (times ``speed``); then
+    ``wait(t_us)`` sleeps until ``t_us`` is due and says how late it already was.
+    """
+
+    def __init__(
+        self,
+        *,
+        speed: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        if speed <= 0:
+            raise ValueError(f"speed must be positive, got {speed}")
+        self.speed = speed
+        self._clock, self._sleep = clock, sleep
+        self._origin: tuple[float, int] | None = None
+
+    @property
+    def started(self) -> bool:
+        return self._origin is not None
+
+    def start(self, t_us: int) -> None:
+        self._origin = (self._clock(), t_us)
+
+    def now_us(self) -> int:
+        """The event time due now."""
+        wall, t0 = self._require_origin()
+        return t0 + round((self._clock() - wall) * self.speed * 1e6)
+
+    def due_s(self, t_us: int) -> float:
+        """The wall-clock time at which event time ``t_us`` is due."""
+        wall, t0 = self._require_origin()
+        return wall + (t_us - t0) / 1e6 / self.speed
+
+    def wait(self, t_us: int) -> float:
+        """Sleep until ``t_us`` is due; returns how many seconds late it was (0 if on time)."""
+        late = self._clock() - self.due_s(t_us)
+        if late < 0:
+            self._sleep(-late)
+        return max(late, 0.0)
+
+    def _require_origin(self) -> tuple[float, int]:
+        if self._origin is None:
+            raise RuntimeError("LiveClock.start() must be called first")
+        return self._origin
 
 
 def paced(
@@ -42,18 +112,13 @@ def paced(
     sleep: Callable[[float], None] = time.sleep,
 ) -> Iterator[np.ndarray]:
     """Yield each chunk once the wall clock has caught up with its last event (times ``speed``),
-    so a recording or a simulation arrives as a live camera would deliver it."""
-    if speed <= 0:
-        raise ValueError(f"speed must be positive, got {speed}")
-    origin: tuple[float, int] | None = None
+    so a recording arrives as a live camera would deliver it."""
+    pace = LiveClock(speed=speed, clock=clock, sleep=sleep)
     for chunk in chunks:
         if len(chunk):
-            t_end = int(chunk["t"][-1])
-            if origin is None:
-                origin = (clock(), int(chunk["t"][0]))
-            due = origin[0] + (t_end - origin[1]) / 1e6 / speed
-            if (wait := due - clock()) > 0:
-                sleep(wait)
+            if not pace.started:
+                pace.start(int(chunk["t"][0]))
+            pace.wait(int(chunk["t"][-1]))
         yield chunk
 
 

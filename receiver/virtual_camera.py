@@ -3,36 +3,61 @@
 It asks the server which message, profile, cell count and frame the transmitter page shows,
 fetches that message, and simulates an event camera watching that screen in real time, so the
 whole loop (upload -> transmitter -> camera -> receiver -> dashboard) closes without hardware.
-When the transmitter switches to another message the simulation restarts on it. Until a
-transmitter page reports, the camera watches the newest uploaded message from its first frame,
-as if a page were showing it.
+When the transmitter switches to another message the simulation restarts on it (and ``link``
+tells the daemon the new link settings). Until a transmitter page reports, the camera watches
+the newest uploaded message from its first frame, as if a page were showing it.
+
+The simulation runs in a child process (``SimulatorProcess``), a few packets ahead, so that on
+two cores the simulator and the receiver pipeline work side by side. The camera stays live:
+when the simulation runs slower than real time, it does not fall ever further behind the
+screen; once ``MAX_LAG_S`` late it skips ahead to what the screen shows now, says so in the
+log, and reports its ``speed``.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import multiprocessing
+import queue
+import signal
+import threading
 import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
+from typing import Protocol
 
 import numpy as np
 
 from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.events import empty_events
-from receiver.sources import SourceError, paced
+from receiver.sources import LinkSettings, LiveClock, SourceError
 
 log = logging.getLogger(__name__)
 
 MOTIONS = ("static", "handheld")
+DEFAULT_MOTION = "static"
+"""The demo's camera. ``handheld`` once the simulator keeps up with real time on one core: at
+320x180 it makes 0.39 simulated seconds per CPU second (static: 5.5), so the hand-held camera
+skips ahead (``--motion handheld`` still tracks, and decodes the demo's message)."""
 WAIT_S = 1.0
 """How often to ask again while there is nothing to watch."""
 DISTANCE_M = 2.5
 """Camera to marker centre: about 5 pixels per cell on the default sensor."""
+HANDHELD_FLOW_PX_PER_MS = 0.05
+"""A gentle hand: the marker drifts ~50 px/s across the 320 px sensor."""
+MAX_LAG_S = 1.0
+"""Behind the screen by this much, the camera skips ahead to what it shows now."""
+BEHIND_NOTE_S = 30.0
+"""While behind, the log says so at most this often."""
+KEEPING_UP = 0.95
+"""``speed`` at or above which the camera counts as keeping up with real time."""
+SIMULATOR_TIMEOUT_S = 120.0
+"""Longest wait for the simulator's next packet (its first one compiles the kernels)."""
 
 
 def default_camera() -> CameraModel:
@@ -56,17 +81,129 @@ class Showing:
     """What the transmitter shows: a message, its link settings and the frame on screen now."""
 
     message_id: str
-    profile: str
-    cells: int
+    link: LinkSettings
     refresh_hz: float
     frame_now: int
 
     def same_stream(self, other: Showing) -> bool:
-        return (self.message_id, self.profile, self.cells) == (
-            other.message_id,
-            other.profile,
-            other.cells,
+        return (self.message_id, self.link) == (other.message_id, other.link)
+
+
+class Simulator(Protocol):
+    def watch(self, scene) -> Iterator[np.ndarray]:
+        """The events of ``scene`` from its start, endlessly, in ``chunk_us`` packets."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class SimulatorInThread:
+    """The simulation in the caller's thread: it shares a core with the receiver pipeline."""
+
+    def __init__(self, chunk_us: int) -> None:
+        self.chunk_us = chunk_us
+
+    def watch(self, scene) -> Iterator[np.ndarray]:
+        from receiver.sim import simulate
+
+        return iter(simulate(scene, duration_s=24 * 3600, chunk_us=self.chunk_us))
+
+    def close(self) -> None:
+        pass
+
+
+class SimulatorProcess:
+    """The simulation in a child process, so that on two cores it runs beside the receiver
+    pipeline: it simulates the next packet while the camera hands out this one (a pipe holds
+    about one packet, which paces it).
+
+    One process for the camera's life (it compiles the kernels once): each ``watch`` sends it a
+    new scene, and packets of the scene it was on are dropped on arrival.
+    """
+
+    def __init__(self, chunk_us: int) -> None:
+        context = multiprocessing.get_context("spawn")  # no fork of a threaded daemon
+        self._chunks, chunks_end = context.Pipe(duplex=False)
+        scenes_end, self._scenes = context.Pipe(duplex=False)
+        self._process = context.Process(
+            target=_simulate_scenes,
+            args=(scenes_end, chunks_end, chunk_us),
+            name="eventocc-simulator",
+            daemon=True,
         )
+        self._process.start()
+        # Only the child holds these ends now: its death reads as end-of-file, never a hang.
+        chunks_end.close()
+        scenes_end.close()
+        self._scene_number = 0
+        # Scenes go out from their own thread: a large message does not fit the pipe, and the
+        # child may be waiting for us to take a packet before it reads the scene.
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._send_scenes, name="eventocc-scenes", daemon=True).start()
+
+    @property
+    def pid(self) -> int | None:
+        return self._process.pid
+
+    def watch(self, scene) -> Iterator[np.ndarray]:
+        self._scene_number += 1
+        number = self._scene_number
+        self._outbox.put((number, scene.describe()))  # a Scene holds unpicklable parts
+        while (packet := self._next()) is not None:
+            arrived, events = packet
+            if arrived == number:
+                yield events
+
+    def _send_scenes(self) -> None:
+        try:
+            while (job := self._outbox.get()) is not None:
+                self._scenes.send(job)
+        except OSError:
+            pass  # the child is gone: ``_next`` says why
+        finally:
+            self._scenes.close()
+
+    def _next(self) -> tuple[int, np.ndarray] | None:
+        """The next packet; None once the process was stopped by a signal (the camera ends)."""
+        deadline = time.monotonic() + SIMULATOR_TIMEOUT_S
+        while not self._chunks.poll(1.0):
+            if time.monotonic() > deadline:
+                raise SourceError(f"the simulator sent nothing for {SIMULATOR_TIMEOUT_S:.0f} s")
+        try:
+            return self._chunks.recv()
+        except EOFError:
+            self._process.join(5)
+        code = self._process.exitcode
+        if code is not None and code < 0:  # e.g. SIGTERM to the daemon's process group
+            log.warning("the simulator process was stopped by signal %d", -code)
+            return None
+        raise SourceError(f"the simulator process died (exit code {code}); its error is above")
+
+    def close(self) -> None:
+        """Stop the process: it holds nothing that needs a graceful end."""
+        self._outbox.put(None)
+        self._process.terminate()
+        self._process.join(5)
+        self._chunks.close()
+
+
+def _simulate_scenes(scenes, chunks, chunk_us: int) -> None:
+    """The simulator process: simulate each scene sent until the next one comes."""
+    from receiver.sim import Scene, simulate
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the daemon, which stops us
+    try:
+        job = scenes.recv()
+        while job is not None:
+            number, description = job
+            job = None
+            for events in simulate(Scene.from_dict(description), 24 * 3600, chunk_us):
+                chunks.send((number, events))  # waits while the camera holds the last one
+                if scenes.poll():  # the screen changed: on to the new scene
+                    job = scenes.recv()
+                    break
+    except (EOFError, BrokenPipeError):
+        pass  # the camera is gone
 
 
 class VirtualCamera:
@@ -75,11 +212,14 @@ class VirtualCamera:
         server_url: str,
         *,
         camera: CameraModel | None = None,
-        motion: str = "static",
+        motion: str = DEFAULT_MOTION,
         chunk_us: int = 5_000,
         check_every_s: float = 1.0,
         seed: int = 0,
+        clock: LiveClock | None = None,
+        simulator: Simulator | None = None,
     ) -> None:
+        """``simulator`` defaults to a ``SimulatorProcess``, started on the first ``chunks``."""
         if not server_url.startswith(("http://", "https://")):
             raise SourceError(
                 f"the virtual camera needs the server's http(s) URL, got {server_url!r}"
@@ -93,9 +233,20 @@ class VirtualCamera:
         self.chunk_us = chunk_us
         self.check_every_s = check_every_s
         self.seed = seed
+        self.clock = clock or LiveClock()
+        self.simulator = simulator
+        self.link: LinkSettings | None = None
+        """The link settings of the stream being simulated (the daemon follows them)."""
+        self.speed: float | None = None
+        """Simulated seconds per wall-clock second over the last ``check_every_s`` simulated
+        (1.0: keeping up; None: nothing to watch)."""
+        self.skips = 0
+        """Times the camera skipped ahead because the simulation fell behind the screen."""
         self._waiting_for: str | None = None
-        self.receiving: tuple[str, int] | None = None
-        """The receiver's profile and cells, once ``link_settings`` chose them."""
+        self._watching: Showing | None = None
+        self._encoder: tuple[Showing, StreamEncoder] | None = None
+        self._last_t = -1
+        self._behind_note = _BehindNote()
 
     # --- asking the server ---
 
@@ -119,32 +270,37 @@ class VirtualCamera:
             hz = s["refresh_hz"] or 60.0
             age_s = (datetime.now(UTC) - datetime.fromisoformat(s["received"])).total_seconds()
             frame_now = s["frame_index"] + max(0, round(age_s * hz))
-            return Showing(s["message_id"], s["profile"], s["cells"], hz, frame_now)
+            return Showing(s["message_id"], LinkSettings(s["profile"], s["cells"]), hz, frame_now)
         messages = json.loads(self._get("/api/messages") or b'{"messages": []}')["messages"]
         if not messages:
             return None
         newest = messages[0]
-        return Showing(newest["id"], newest["profile"], newest["cells"], 60.0, 0)
+        return Showing(newest["id"], LinkSettings(newest["profile"], newest["cells"]), 60.0, 0)
 
-    def link_settings(self, profile: str | None, cells: int | None) -> tuple[str, int]:
-        """Profile and cells to receive with: as given, else what the transmitter shows now,
-        else the server's defaults (the receiver must be built before anything plays)."""
+    def link_settings(self) -> LinkSettings:
+        """What the transmitter sends now, else the server's defaults (the receiver must be
+        built before anything plays)."""
         try:
             showing = self.showing()
-            if showing is None:
-                defaults = json.loads(self._get("/api/profiles") or b"{}")
-                showing = Showing("", defaults["default_profile"], defaults["default_cells"], 0, 0)
+            if showing is not None:
+                return showing.link
+            defaults = json.loads(self._get("/api/profiles") or b"{}")
+            return LinkSettings(defaults["default_profile"], defaults["default_cells"])
         except OSError as error:
             raise SourceError(f"cannot ask {self.server_url} what it transmits: {error}") from None
-        self.receiving = (profile or showing.profile, cells or showing.cells)
-        return self.receiving
 
     def encoder(self, showing: Showing) -> StreamEncoder:
+        """The stream's encoder, fetched once per stream (a skip ahead reuses it)."""
+        if self._encoder is not None and self._encoder[0].same_stream(showing):
+            return self._encoder[1]
         meta = json.loads(self._get(f"/api/messages/{showing.message_id}") or b"null")
         data = self._get(f"/api/messages/{showing.message_id}/content")
         if meta is None or data is None:
             raise LookupError(f"message {showing.message_id} is gone")
-        return StreamEncoder(data, name=meta["name"], profile=showing.profile, cells=showing.cells)
+        link = showing.link
+        encoder = StreamEncoder(data, name=meta["name"], profile=link.profile, cells=link.cells)
+        self._encoder = (showing, encoder)
+        return encoder
 
     # --- simulating ---
 
@@ -152,7 +308,12 @@ class VirtualCamera:
         from receiver.sim import Display, HandHeldMotion, Scene, StaticMotion
 
         motion = (
-            HandHeldMotion(distance_m=DISTANCE_M, flow_px_per_ms=0.2, seed=self.seed)
+            # A new seed at each skip: the wander restarts from another pose, as after a jolt.
+            HandHeldMotion(
+                distance_m=DISTANCE_M,
+                flow_px_per_ms=HANDHELD_FLOW_PX_PER_MS,
+                seed=self.seed + self.skips,
+            )
             if self.motion == "handheld"
             else StaticMotion(distance_m=DISTANCE_M)
         )
@@ -172,30 +333,21 @@ class VirtualCamera:
         While nothing plays it yields an empty chunk every ``WAIT_S``: a heartbeat, so the
         daemon keeps reporting its health.
         """
-        from receiver.sim import simulate
+        if self.simulator is None:
+            self.simulator = SimulatorProcess(self.chunk_us)
+        try:
+            yield from self._follow_the_screen()
+        finally:
+            self.simulator.close()
 
-        t_offset = 0
+    def _follow_the_screen(self) -> Iterator[np.ndarray]:
         while True:
             showing = self._something_to_watch()
             if showing is None:
+                self.speed = None
                 yield empty_events()
                 time.sleep(WAIT_S)
                 continue
-            log.info(
-                "virtual camera watching message %s (%s, %d cells) from frame %d",
-                showing.message_id,
-                showing.profile,
-                showing.cells,
-                showing.frame_now,
-            )
-            if self.receiving not in (None, (showing.profile, showing.cells)):
-                log.warning(
-                    "the transmitter sends %s with %d cells but the receiver expects %s with %d: "
-                    "restart it with matching --profile/--cells",
-                    showing.profile,
-                    showing.cells,
-                    *self.receiving,
-                )
             try:
                 scene = self.scene(self.encoder(showing), showing)
             except (OSError, LookupError) as error:
@@ -203,18 +355,46 @@ class VirtualCamera:
                 yield empty_events()
                 time.sleep(WAIT_S)
                 continue
-            next_check = time.monotonic() + self.check_every_s
-            last_t = t_offset
-            for events in paced(simulate(scene, duration_s=24 * 3600, chunk_us=self.chunk_us)):
-                events["t"] += t_offset  # one continuous clock across restarts
-                last_t = int(events["t"][-1]) if len(events) else last_t
-                yield events
-                if time.monotonic() >= next_check:
-                    next_check = time.monotonic() + self.check_every_s
-                    now = self._something_to_watch()
-                    if now is None or not now.same_stream(showing):
-                        break
-            t_offset = last_t + 1
+            if self._watching is None or not showing.same_stream(self._watching):
+                log.info(
+                    "virtual camera watching message %s (%s, %d cells) from frame %d",
+                    showing.message_id,
+                    showing.link.profile,
+                    showing.link.cells,
+                    showing.frame_now,
+                )
+            self._watching, self.link = showing, showing.link
+            yield from self._watch(scene, showing)
+
+    def _watch(self, scene, showing: Showing) -> Iterator[np.ndarray]:
+        """The scene's events from now on, until the stream changes or the camera falls
+        ``MAX_LAG_S`` behind the screen."""
+        # One clock across restarts, tied to the wall clock at the first chunk: that one pays
+        # for compiling the simulator and is not late.
+        t_offset = max(self.clock.now_us(), self._last_t + 1) if self.clock.started else 0
+        window_us, late_before = 0, 0.0  # simulated time and lateness at the window's start
+        for events in self.simulator.watch(scene):
+            events["t"] += t_offset
+            late_s = 0.0
+            if len(events):
+                self._last_t = int(events["t"][-1])
+                if not self.clock.started:
+                    self.clock.start(self._last_t)
+                late_s = self.clock.wait(self._last_t)
+            window_us += self.chunk_us
+            yield events
+            if late_s > MAX_LAG_S:
+                self.speed = _speed(window_us, late_s - late_before)
+                self.skips += 1
+                self._behind_note.skipped(self.speed)
+                return
+            if window_us >= self.check_every_s * 1e6:
+                self.speed = _speed(window_us, late_s - late_before)
+                self._behind_note.measured(self.speed)
+                window_us, late_before = 0, late_s
+                now = self._something_to_watch()
+                if now is None or not now.same_stream(showing):
+                    return
 
     def _something_to_watch(self) -> Showing | None:
         """``showing()``, with a failure logged once rather than raised: the camera waits."""
@@ -227,3 +407,36 @@ class VirtualCamera:
             log.info("virtual camera waiting: %s", reason)
         self._waiting_for = None if showing is not None else reason
         return showing
+
+
+def _speed(simulated_us: int, later_by_s: float) -> float:
+    """Simulated per wall-clock time: the wall time spent is the simulated time plus how much
+    later than the screen the camera got meanwhile (on time, ``LiveClock`` sleeps: 1.0)."""
+    return simulated_us / (simulated_us + max(later_by_s, 0.0) * 1e6)
+
+
+class _BehindNote:
+    """Says in the log, at most every ``BEHIND_NOTE_S``, that the camera cannot keep up."""
+
+    def __init__(self) -> None:
+        self.behind = False
+        self._skips = 0
+        self._next_note = 0.0
+
+    def skipped(self, speed: float) -> None:
+        self._skips += 1
+        self.behind = True
+        if time.monotonic() >= self._next_note:
+            self._next_note = time.monotonic() + BEHIND_NOTE_S
+            log.warning(
+                "virtual camera at %.2fx real time: the simulation cannot keep up with the "
+                "screen, so it skipped ahead %d time(s) to what the screen shows now",
+                speed,
+                self._skips,
+            )
+            self._skips = 0
+
+    def measured(self, speed: float) -> None:
+        if self.behind and speed >= KEEPING_UP:
+            self.behind = False
+            log.info("virtual camera keeps up with real time again")

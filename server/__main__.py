@@ -11,7 +11,7 @@ from pathlib import Path
 import uvicorn
 from pydantic import ValidationError
 
-from server.app import create_app
+from server.app import UVICORN_OPTIONS, create_app
 from server.settings import Settings
 
 
@@ -36,7 +36,7 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
 
 def main(argv: list[str] | None = None) -> None:
     settings = settings_from_args(parse_args(argv))
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, **UVICORN_OPTIONS)
 
 
 if __name__ == "__main__":

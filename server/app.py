@@ -18,6 +18,11 @@ from server.store import MessageStore
 
 WEB_DIR = Path(__file__).resolve().parent.parent / "web"
 
+UVICORN_OPTIONS = {"ws_per_message_deflate": False}
+"""For every way the app is served. No per-message deflate on websockets: updates are small
+JSON, and compressing each one for each viewer (one zlib stream per connection) took a third
+more server CPU with 100 dashboards (bench/live.py) to save little bandwidth."""
+
 OPTIONAL_ROUTER_MODULES = ("server.live",)
 """Modules exposing ``router``, included when they exist (websockets, health, metrics)."""
 

@@ -1,11 +1,13 @@
 """``make demo``: run the server, upload a sample message, start a receiver daemon on the
 virtual event camera, print where to watch it.
 
-Ctrl-C stops everything. Each part of the demo is one step in ``main``.
+Ctrl-C stops everything. Each part of the demo is one step in ``main``. ``--motion`` picks the
+virtual camera's motion (``static`` or ``handheld``; default: the receiver's default).
 """
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
@@ -19,7 +21,7 @@ from urllib.parse import quote
 
 import uvicorn
 
-from server.app import create_app
+from server.app import UVICORN_OPTIONS, create_app
 from server.settings import Settings
 
 SAMPLE_NAME = "hello.txt"
@@ -43,7 +45,11 @@ def start_server(settings: Settings) -> tuple[uvicorn.Server, threading.Thread]:
     """Serve in a background thread; returns once the server accepts connections."""
     server = uvicorn.Server(
         uvicorn.Config(
-            create_app(settings), host=settings.host, port=settings.port, log_level="warning"
+            create_app(settings),
+            host=settings.host,
+            port=settings.port,
+            log_level="warning",
+            **UVICORN_OPTIONS,
         )
     )
     thread = threading.Thread(target=server.run, name="eventocc-server", daemon=True)
@@ -79,7 +85,9 @@ def upload_sample(base_url: str, settings: Settings) -> dict:
         return json.load(response)
 
 
-def start_receiver(base_url: str, settings: Settings) -> subprocess.Popen:
+def start_receiver(
+    base_url: str, settings: Settings, motion: str | None = None
+) -> subprocess.Popen:
     """The receiver daemon on the virtual event camera, in its own process: the server never
     imports the receiver, they meet over HTTP and websockets only."""
     env = {**os.environ, "NUMBA_NUM_THREADS": "1"}
@@ -87,17 +95,29 @@ def start_receiver(base_url: str, settings: Settings) -> subprocess.Popen:
         env["EVENTOCC_TOKEN"] = settings.token.get_secret_value()
     command = [sys.executable, "-m", "receiver.cli", "receive", "--source", "sim:"]
     command += ["--server", base_url, "--out", str(settings.data_dir / "receiver")]
+    if motion is not None:
+        command += ["--motion", motion]
     return subprocess.Popen(command, env=env)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description="The eventocc demo: the server, a sample message, and a receiver daemon "
+        "on the virtual event camera."
+    )
+    parser.add_argument(
+        "--motion",
+        choices=("static", "handheld"),  # the receiver's choices: the server cannot import it
+        help="the virtual camera's motion (default: the receiver's default)",
+    )
+    args = parser.parse_args(argv)
     settings = Settings()
     if settings.port and not port_is_free(settings.host, settings.port):
         settings = settings.model_copy(update={"port": 0})  # let the OS pick a free one
     server, thread = start_server(settings)
     base_url = bound_url(server)
     message = upload_sample(base_url, settings)
-    receiver = start_receiver(base_url, settings)
+    receiver = start_receiver(base_url, settings, args.motion)
     print(f"eventocc server on {base_url}  (API docs: {base_url}/docs)")
     print(f"transmitter: {base_url}/transmitter?id={message['id']}")
     print(f"dashboard:   {base_url}/dashboard  (a receiver watches on the virtual camera)")

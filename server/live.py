@@ -93,6 +93,7 @@ async def live_lifespan(app: FastAPI) -> AsyncIterator[None]:
         watcher.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await watcher
+        live.receptions.close()
 
 
 router = APIRouter(tags=["live"], lifespan=live_lifespan)
@@ -215,7 +216,7 @@ async def store_reception(
     started = live.stream_seen.pop((receiver, report.stream_id), None)
     goodput = report.size * 8 / (time.monotonic() - started) if started is not None else None
     live.recent_receptions.append((time.monotonic(), report.size * 8))
-    uploaded = next((m.id for m in live.messages.messages() if m.sha256 == report.sha256), None)
+    uploaded = await asyncio.to_thread(upload_with_digest, live.messages, report.sha256)
     reception = await asyncio.to_thread(
         live.receptions.add,
         receiver=receiver,
@@ -235,6 +236,11 @@ async def store_reception(
         "verified" if uploaded else "verified; no upload has these bytes",
     )
     return {"type": "reception", **ReceptionPublic.of(reception).model_dump(mode="json")}
+
+
+def upload_with_digest(messages: MessageStore, sha256: str) -> str | None:
+    """The id of an uploaded message with these bytes, if any (reads the store: off the loop)."""
+    return next((m.id for m in messages.messages() if m.sha256 == sha256), None)
 
 
 def announce_receivers(live: LiveState) -> None:

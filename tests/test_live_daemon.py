@@ -10,12 +10,12 @@ import pytest
 
 from occ.report import FrameStats, HealthReport, MessageReport, PoseReport, SurfaceReport
 from occ.stream import ReceivedMessage
-from receiver.daemon import Daemon, DaemonConfig, OutputFolder
+from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder
 from receiver.events import make_events
 from receiver.pipeline.decoder import FrameRead
 from receiver.pipeline.receiver import FrameOutput, MessageOutput, PoseEstimate, StateChange
 from receiver.poses import make_pose, read_tum
-from receiver.sources import SourceError, open_source, paced
+from receiver.sources import LinkSettings, LiveClock, SourceError, open_source, paced
 from receiver.spool import Spool
 
 
@@ -73,6 +73,23 @@ class ListSource:
 
     def chunks(self):
         return iter(self._chunks)
+
+
+class WatchingSource(ListSource):
+    """A source that knows what the screen sends (``link``, one per chunk) and its ``speed``."""
+
+    def __init__(self, chunks: list[np.ndarray], links: list[LinkSettings], speed=None) -> None:
+        super().__init__(chunks)
+        self.links, self.speed = links, speed
+        self.link: LinkSettings | None = None
+
+    def chunks(self):
+        for events, link in zip(self._chunks, self.links, strict=True):
+            self.link = link
+            yield events
+
+
+ROBUST_16, FAST_12 = LinkSettings("robust", 16), LinkSettings("fast", 12)
 
 
 def chunk(t0_us: int, t1_us: int, n: int = 200, seed: int = 0) -> np.ndarray:
@@ -176,3 +193,64 @@ def test_virtual_camera_needs_an_http_url() -> None:
         open_source("sim:", server_url="ws://localhost:8000")
     with pytest.raises(SourceError, match="unknown motion 'flying'"):
         open_source("sim:", server_url="http://localhost:8000", motion="flying")
+
+
+@pytest.mark.parametrize(
+    ("pinned", "built_after_the_switch"),
+    [
+        ({}, [FAST_12]),
+        ({"cells": 16}, [LinkSettings("fast", 16)]),
+        ({"profile": "robust", "cells": 16}, []),
+    ],
+)
+def test_daemon_follows_the_transmitters_link_settings_unless_pinned(
+    tmp_path, caplog, pinned: dict, built_after_the_switch: list
+) -> None:
+    built: list[LinkSettings] = []
+
+    def build(link: LinkSettings) -> ScriptedPipeline:
+        built.append(link)
+        return ScriptedPipeline(message_on_chunk=0)
+
+    follower = LinkFollower(build, ROBUST_16, **pinned)
+    first = follower.pipeline()
+    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(6)]
+    source = WatchingSource(chunks, [ROBUST_16] * 3 + [FAST_12] * 3)
+    daemon = Daemon(source, first, ListSink(), OutputFolder(tmp_path / "out"), follower=follower)
+    with caplog.at_level("INFO", logger="receiver.daemon"):
+        daemon.run()
+    assert built == [ROBUST_16, *built_after_the_switch]
+    assert daemon.summary.rebuilds == len(built_after_the_switch)
+    assert first.chunks == (3 if built_after_the_switch else 6), "the old pipeline stops"
+    assert daemon.pipeline.chunks == 3 or not built_after_the_switch
+    assert ("rebuilding the receiver" in caplog.text) == bool(built_after_the_switch)
+    assert ("is pinned to" in caplog.text) == bool(pinned)
+
+
+def test_without_a_follower_the_pipeline_stays_as_built(tmp_path) -> None:
+    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(4)]
+    pipeline = ScriptedPipeline()
+    source = WatchingSource(chunks, [ROBUST_16] * 2 + [FAST_12] * 2)
+    daemon = Daemon(source, pipeline, ListSink(), OutputFolder(tmp_path / "out"))
+    daemon.run()
+    assert daemon.pipeline is pipeline and pipeline.chunks == 4
+
+
+@pytest.mark.parametrize("speed", [0.4, None])
+def test_health_carries_the_sources_speed(tmp_path, speed) -> None:
+    source = WatchingSource([chunk(0, 9_999)], [ROBUST_16], speed=speed)
+    sink = ListSink()
+    Daemon(source, ScriptedPipeline(), sink, OutputFolder(tmp_path / "out")).run()
+    assert {h.source_speed for h in sink.of(HealthReport)} == {speed}
+
+
+def test_live_clock_says_how_late_and_what_is_due_now() -> None:
+    now = [10.0]
+    clock = LiveClock(clock=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s))
+    with pytest.raises(RuntimeError, match=r"start\(\) must be called first"):
+        clock.wait(0)
+    clock.start(1_000_000)
+    assert clock.wait(1_250_000) == 0.0 and now[0] == 10.25, "early: it sleeps"
+    now[0] += 0.5
+    assert clock.wait(1_300_000) == pytest.approx(0.45), "late: it says by how much"
+    assert clock.now_us() == 1_750_000

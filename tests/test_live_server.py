@@ -263,6 +263,17 @@ def test_a_stalled_dashboard_does_not_slow_the_others(serve_app) -> None:
     assert hub.evicted == 1, "then dropped"
 
 
+def test_websockets_are_not_compressed(serve_app) -> None:
+    """Per-message deflate would cost the server one zlib stream per viewer for small JSON."""
+    base_url, _ = serve_app()
+
+    async def scenario() -> str | None:
+        async with connect(ws_url(base_url, "/ws/dashboard")) as dash:  # offers deflate
+            return dash.response.headers.get("Sec-WebSocket-Extensions")
+
+    assert asyncio.run(scenario()) is None
+
+
 def test_health_and_metrics(serve_app) -> None:
     base_url, _ = serve_app()
     assert json.loads(get(base_url, "/healthz")) == {

@@ -6,6 +6,7 @@ const TRAIL = 600; // poses kept for the trajectory (6 s at the 100 Hz the daemo
 const SERIES = 120; // one sample per second in each sparkline
 const RECONNECT_S = [0.5, 8];
 const GOODPUT_WINDOW_MS = 60_000; // as the server's /metrics gauge
+const KEEPING_UP = 0.95; // source speed (x real time) below which the source is behind
 
 const $ = (id) => document.getElementById(id);
 
@@ -210,12 +211,23 @@ function drawState() {
   if (h) {
     $("tracking-state").textContent = h.state;
     $("cpu-load").textContent = `${(100 * h.cpu_load).toFixed(0)} % of a core`;
+    showSourceSpeed(h.source_speed);
   }
   const f = state.lastFrame;
   if (f) {
     $("frame-stats").textContent =
       `#${f.frame_index}, ${f.bits_read} bits, confidence ${f.confidence_mean.toFixed(2)}`;
   }
+}
+
+function showSourceSpeed(speed) {
+  // Only a source that can fall behind real time (the virtual camera) reports its speed.
+  const dd = $("source-speed");
+  const behind = speed != null && speed < KEEPING_UP;
+  dd.dataset.state = behind ? "behind" : "live";
+  if (speed == null) dd.textContent = "live";
+  else if (!behind) dd.textContent = "keeps up with real time";
+  else dd.textContent = `virtual camera at ${speed.toFixed(2)}x real time: skipping ahead to stay live`;
 }
 
 function drawSurface(u) {

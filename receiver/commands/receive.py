@@ -23,10 +23,14 @@ from pathlib import Path
 
 from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 from receiver.camera import CameraModel
-from receiver.daemon import Daemon, DaemonConfig, OutputFolder
-from receiver.sources import SourceError, open_source
+from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder
+from receiver.sources import LinkSettings, SourceError, open_source
+from receiver.virtual_camera import DEFAULT_MOTION, MOTIONS, VirtualCamera
 
 log = logging.getLogger(__name__)
+
+DEFAULT_LINK = LinkSettings(DEFAULT_PROFILE, 16)
+"""What a receiver that cannot ask assumes, unless told (``--profile``, ``--cells``)."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -56,16 +60,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--profile",
         choices=PROFILE_NAMES,
-        help=f"the transmitter's link profile (sim: asked from the server; else {DEFAULT_PROFILE})",
+        help="pin the transmitter's link profile (sim: followed from the server unless pinned; "
+        f"else {DEFAULT_PROFILE})",
     )
-    p.add_argument("--cells", type=int, help="payload side N (sim: asked from the server; else 16)")
+    p.add_argument(
+        "--cells",
+        type=int,
+        help="pin the payload side N (sim: followed from the server unless pinned; else 16)",
+    )
     p.add_argument("--refresh-hz", type=float, default=60.0, help="the display's refresh rate")
     p.add_argument("--marker-size", type=float, default=0.272, help="marker side on screen, metres")
     p.add_argument(
         "--motion",
-        choices=("handheld", "static"),
-        default="static",
-        help="sim: a tripod, or a hand-held wander (slower to simulate than real time)",
+        choices=MOTIONS,
+        default=DEFAULT_MOTION,
+        help=f"sim: a tripod, or a gentle hand-held wander (default {DEFAULT_MOTION}); a "
+        "simulation slower than real time skips ahead to stay live, and says so",
     )
     p.add_argument(
         "--server",
@@ -119,11 +129,10 @@ def _camera(args: argparse.Namespace) -> CameraModel:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from receiver.pipeline.config import ReceiverConfig
+    from receiver.pipeline.config import LIVE_CPU_SHARE, DetectorParams, ReceiverConfig
     from receiver.pipeline.receiver import Receiver
     from receiver.publisher import Publisher
     from receiver.spool import Spool
-    from receiver.virtual_camera import VirtualCamera
 
     camera = _camera(args)
     source = open_source(
@@ -138,30 +147,44 @@ def _run(args: argparse.Namespace) -> int:
             f"the source is {source.width}x{source.height} but the calibration is "
             f"{camera.width}x{camera.height}; pass the matching --calibration"
         )
-    profile, cells = args.profile, args.cells
-    if isinstance(source, VirtualCamera):  # it knows what is being sent
-        profile, cells = source.link_settings(profile, cells)
-    config = ReceiverConfig(
-        camera,
-        cells=cells or 16,
-        profile=profile or DEFAULT_PROFILE,
-        refresh_hz=args.refresh_hz,
-        marker_size_m=args.marker_size,
-    )
+
+    def build(link: LinkSettings) -> Receiver:
+        return Receiver(
+            ReceiverConfig(
+                camera,
+                cells=link.cells,
+                profile=link.profile,
+                refresh_hz=args.refresh_hz,
+                marker_size_m=args.marker_size,
+                # A real-time source must not fall behind while detection keeps failing.
+                detector=DetectorParams(
+                    max_cpu_share=LIVE_CPU_SHARE if args.pace == "realtime" else None
+                ),
+            )
+        )
+
+    knows_what_is_sent = isinstance(source, VirtualCamera)
+    sending = source.link_settings() if knows_what_is_sent else DEFAULT_LINK
+    follower = LinkFollower(build, sending, profile=args.profile, cells=args.cells)
     output = OutputFolder(args.out)
     spool = Spool(output.root / "spool.db")
     stop = threading.Event()
     publisher = Publisher(websocket_url(args.server), spool, token=args.token, on_fatal=stop.set)
     daemon = Daemon(
-        source, Receiver(config), publisher.start(), output, DaemonConfig(pose_hz=args.pose_hz)
+        source,
+        follower.pipeline(),
+        publisher.start(),
+        output,
+        DaemonConfig(pose_hz=args.pose_hz),
+        follower if knows_what_is_sent else None,
     )
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     log.info(
         "receiver %s: %s, profile %s, %d cells -> %s; output in %s",
         spool.receiver_id,
         args.source,
-        config.profile,
-        config.cells,
+        follower.receiving.profile,
+        follower.receiving.cells,
         args.server,
         output.root,
     )

@@ -1,0 +1,79 @@
+"""``make demo`` with the hand-held virtual camera: the dashboard sees the pose move.
+
+Slow (a simulation slower than real time takes a core for the whole test): ``pytest -m slow``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from websockets.sync.client import connect
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parent.parent
+MOVING_WITHIN_S = 30.0
+MIN_TRAVEL_M = 0.01
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def dashboard_poses(port: int, first_within_s: float, then_s: float) -> np.ndarray:
+    """Positions of the pose updates a dashboard sees: from the first (which must come within
+    ``first_within_s``) for ``then_s`` more."""
+    deadline = time.monotonic() + 60.0
+    while True:
+        try:
+            ws = connect(f"ws://127.0.0.1:{port}/ws/dashboard")
+            break
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
+    positions, until = [], time.monotonic() + first_within_s
+    with ws:
+        while time.monotonic() < until:
+            try:
+                update = json.loads(ws.recv(timeout=1.0))
+            except TimeoutError:
+                continue
+            if update["type"] == "pose":
+                if not positions:
+                    until = time.monotonic() + then_s
+                positions.append(update["position"])
+    return np.array(positions).reshape(-1, 3)
+
+
+def test_demo_with_a_hand_held_camera_shows_the_pose_moving(tmp_path) -> None:
+    port = free_port()
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "server.demo", "--motion", "handheld"],
+        cwd=ROOT,
+        env={**os.environ, "EVENTOCC_PORT": str(port), "EVENTOCC_DATA_DIR": str(tmp_path)},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        positions = dashboard_poses(port, first_within_s=60.0, then_s=MOVING_WITHIN_S)
+    finally:
+        demo.send_signal(signal.SIGINT)
+        _, log = demo.communicate(timeout=60)
+    assert len(positions), f"no pose reached the dashboard:\n{log}"
+    travel = np.linalg.norm(positions - positions[0], axis=1).max()
+    assert travel >= MIN_TRAVEL_M, f"the camera stood still ({travel * 100:.1f} cm):\n{log}"
+    distance = np.linalg.norm(positions, axis=1)
+    assert np.median(distance) == pytest.approx(2.5, abs=0.5), "about 2.5 m from the marker"

@@ -1,0 +1,100 @@
+"""The receiver daemon (real CLI, virtual camera, real server) follows the transmitter when it
+switches to a message with other link settings, unless ``--profile/--cells`` pin them."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def post(base_url: str, path: str, body: dict) -> dict:
+    req = urllib.request.Request(
+        base_url + path,
+        data=json.dumps(body).encode(),
+        headers={"Content-Type": "application/json"},
+        method="POST",
+    )
+    with urllib.request.urlopen(req, timeout=10) as response:
+        return json.load(response)
+
+
+def play(base_url: str, message: dict) -> None:
+    """Report what a transmitter page showing ``message`` would report."""
+    status = {"message_id": message["id"], "profile": message["profile"], "playing": True}
+    post(
+        base_url,
+        "/api/transmitter/status",
+        {**status, "cells": message["cells"], "frame_index": 0, "refresh_hz": 60.0},
+    )
+
+
+class DaemonProcess:
+    """``eventocc-receiver receive`` on the virtual camera, its log read as it comes."""
+
+    def __init__(self, base_url: str, out: Path, *options: str) -> None:
+        command = [sys.executable, "-m", "receiver.cli", "receive", "--source", "sim:"]
+        command += ["--server", base_url, "--out", str(out), *options]
+        self.process = subprocess.Popen(
+            command,
+            cwd=ROOT,
+            env={**os.environ, "NUMBA_NUM_THREADS": "1"},
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.process.stderr:
+            self.lines.append(line)
+
+    def wait_for(self, text: str, timeout_s: float = 60.0) -> str:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for line in self.lines:
+                if text in line:
+                    return line
+            if self.process.poll() is not None:
+                break
+            time.sleep(0.1)
+        raise AssertionError(f"the daemon never logged {text!r}:\n{''.join(self.lines)}")
+
+    def stop(self) -> str:
+        self.process.send_signal(signal.SIGTERM)
+        self.process.wait(60)
+        self._reader.join(10)
+        return "".join(self.lines)
+
+
+@pytest.mark.parametrize("pinned", [(), ("--cells", "16")])
+def test_daemon_rebuilds_its_receiver_when_the_transmitter_switches(
+    serve_app, tmp_path, pinned: tuple[str, ...]
+) -> None:
+    base_url, _ = serve_app()
+    robust = post(base_url, "/api/messages?name=a.txt&profile=robust&cells=16", {"text": "a"})
+    fast = post(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
+    play(base_url, robust)
+    daemon = DaemonProcess(base_url, tmp_path / "out", *pinned)
+    try:
+        daemon.wait_for("profile robust, 16 cells")
+        daemon.wait_for(f"watching message {robust['id']}")
+        play(base_url, fast)
+        daemon.wait_for(f"watching message {fast['id']} (fast, 12 cells)")
+        if pinned:
+            daemon.wait_for("the transmitter sends fast with 12 cells but the receiver is pinned")
+        daemon.wait_for(f"switched to fast with {12 if not pinned else 16} cells: rebuilding")
+    finally:
+        log = daemon.stop()
+    assert daemon.process.returncode == 0, log
