@@ -113,19 +113,22 @@ def main() -> None:
             f"{'yes' if r['decoded'] else 'no'} | {r['pose_hz']:.0f} | {r['losses']} |"
         )
     body = (
-        f"HandHeldMotion at 0.6 m, N = 16, robust profile, gen4-indoor sensor, 240x180 "
-        f"camera, {duration} s clips, fit-ratio loss check on (min_fit_ratio 0.5). ATE after "
-        "a rigid Umeyama fit (scale fixed at 1 by the marker size). Targets: first lock "
-        "within 300 ms, first pose within 5 cm, "
-        "ATE <= 1 cm, every message decoded, >= 1 kHz poses. Detection under motion: a blink "
-        "map of 8 px tiles, one motion-compensated burst, a fitted locator square, captures "
-        "onto the ring's edge events, the 'L' read through the pose, and a lock verified on "
-        "the buffered frames (locator contrast, fit ratio). 'never' under first lock: no "
-        "verified lock during the clip (ATE etc. then have nothing to score). A message "
-        "needs more frames than one clip gives while the inner locator reads poorly under "
-        "motion. At 1-2 px/ms most attempts still fail (swept edges stick to the compensated "
-        "burst's outline, so the ring capture starts a ring width off) and a wrong lock can "
-        "pass verification; the fit-ratio check then drops it (losses).\n\n" + "\n".join(lines)
+        "HandHeldMotion at 0.6 m, N = 16, robust profile, gen4-indoor sensor, 240x180 camera, "
+        f"{duration} s clips, fit-ratio loss check on (min_fit_ratio 0.5). ATE after a rigid "
+        "Umeyama fit (scale fixed at 1 by the marker size). Targets: first lock within 300 ms, "
+        "first pose within 5 cm, ATE <= 1 cm, every message decoded, >= 1 kHz poses. Detection "
+        "under motion: a blink map of 8 px tiles, one motion-compensated burst, a fitted "
+        "locator square, captures onto the ring's edge events from three scaled copies of it "
+        "(the one with the most events on the edges wins), the 'L' read through that pose, and "
+        "a lock verified on the buffered frames (locator contrast, fit ratio). 'never' under "
+        "first lock: no verified lock during the clip (ATE etc. then have nothing to score). A "
+        "message needs more frames than one clip gives while the inner locator reads poorly "
+        "under motion. At 1-2 px/ms most attempts still fail: swept edges left in the "
+        "compensated burst make the fitted square a ring width or two too large, and the burst "
+        "reads the 'L' poorly even through a correct pose. Verification rejects most such fits,"
+        " but not all: a wrong lock that passes it stands until the fit-ratio check drops it "
+        "(losses), or to the clip's end."
+        "\n\n" + "\n".join(lines)
     )
     write_section(
         "tracking",

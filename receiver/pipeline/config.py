@@ -109,8 +109,9 @@ class DecoderParams:
     """Template pixels per cell; 0 picks one from the cell's size in the image."""
     cell_margin: float = 0.2
     """Fraction of each cell side ignored at its border (blur, pose error)."""
-    steps: int = 3
-    """Sub-windows per frame, each unwarped with the pose current at its time."""
+    step_us: int = 250
+    """Longest stretch of a frame's bursts unwarped with one pose: under hand-held motion the
+    marker must move well under a cell meanwhile (0.5 px/ms moves it 1/8 px per 250 us)."""
     lost_after_frames: int = 6
     """Consecutive frames without the inner locator before tracking counts as lost."""
     min_locator_score: float = 0.3

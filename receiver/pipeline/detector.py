@@ -24,6 +24,11 @@ only a start for the ring's edges, one cell wide, and it ignores perspective: a 
 of it are each pulled onto the ring's edge events around the burst (``EdgeTracker.capture``), and
 the pose that puts the most events on the edges wins. The locator's "L" is then read through
 that pose.
+
+Cost: a still camera must not pay for the motion path. The blink map reads a sample of the
+window, the flow is scored on a few thousand OFF events in one compiled pass, and the per-event
+DFTs look their phases up in a table; a megapixel window of ten million events then costs about
+0.3 CPU s, most of it the still path's own per-pixel passes.
 """
 
 from __future__ import annotations
@@ -41,30 +46,55 @@ from receiver.pipeline.locate import (
     Box,
     CompensatedBurst,
     MarkerNotFound,
+    burst_flow,
     check_quadrilateral,
     compensated_burst,
     events_between,
     fit_square,
+    latest_burst_us,
     locator_blob,
     quadrilateral,
 )
 from receiver.pipeline.pose import pnp, project_ideal
-from receiver.pipeline.tracker import EdgeTracker
+from receiver.pipeline.tracker import EdgeTracker, _nearest_edge
 
 TILE_PX = 8
 """Side of the blink map's tiles: a couple of cells at the smallest accepted marker."""
 _MIN_TILE_RATIO = 0.25
 """|X_k| / X_0 of a tile's signed events for it to blink: ON bursts and OFF bursts half a period
 later add up, swept edges (both polarities at any phase) do not; ~0.5 in the payload."""
+_MAP_SAMPLE = 1_000_000
+"""Events of the window that the blink map reads (every k-th): a tile's pulse stands out of a
+sample as well as of all of them, and a megapixel sensor's window holds ten times as many."""
 _BUSY_TILE_SHARE = 0.1
 """Tiles with fewer events than this share of the busiest ones are noise, whatever their DFT."""
 _CAPTURE_SCALES = (1.0, 0.96, 1.04)
 """Scales of the fitted locator square tried as capture starts: a start about a ring width off
-pulls the ring's inner edge onto the outer one (or the locator's), so neighbours are tried too."""
+pulls the ring's inner edge onto the outer one (or the locator's), so neighbours are tried too.
+(Wider scales, with the best 'L' reading choosing among them, locked wrongly more often: the
+largest of more noisy readings passes more wrong fits.)"""
 _CAPTURE_HALF_US = 1000
 """Half the span of edge events a capture uses: the ring moves about a pixel per ms."""
+_CAPTURE_SAMPLE = 30_000
+"""Events a capture reads at most (every k-th): a megapixel sensor fires millions around the
+burst, and a pose of eight edges needs far fewer."""
 _ON_EDGE_PX = 1.0
 """An event within this distance of a projected ring edge counts as on it (capture scoring)."""
+
+
+_PHASE_STEPS = 512
+"""Blink phases tabulated for the per-event DFTs: steps of 0.7 degrees, far finer than the
+bursts' spread, and a table look-up costs a fraction of a sine and a cosine."""
+_COS = np.cos(2 * np.pi * np.arange(_PHASE_STEPS) / _PHASE_STEPS)
+_SIN = np.sin(2 * np.pi * np.arange(_PHASE_STEPS) / _PHASE_STEPS)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _phase_step(t, period_us):
+    """Index into ``_COS`` and ``_SIN`` of time ``t``'s phase in the blink period (a product
+    and a floor: a float modulo would cost more than the sine it saves)."""
+    cycles = t / period_us
+    return int((cycles - np.floor(cycles)) * _PHASE_STEPS) % _PHASE_STEPS
 
 
 @dataclass(frozen=True)
@@ -148,9 +178,12 @@ def largest_region(heat: np.ndarray, threshold: float) -> np.ndarray:
     x, y, w, h = cv2.boundingRect(best)
     pad = max(2, int(0.1 * max(w, h)))
     lo, hi = np.array([x - pad, y - pad]), np.array([x + w + pad, y + h + pad])
-    pts = np.argwhere(binary)[:, ::-1]
-    pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
-    return cv2.convexHull(pts.astype(np.int32)).reshape(-1, 2)
+    # The hull of the box's pixels is that of their outlines: far fewer points.
+    lo, hi = np.maximum(lo, 0), hi + 1
+    outlines, _ = cv2.findContours(
+        binary[lo[1] : hi[1], lo[0] : hi[0]], cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
+    )
+    return cv2.convexHull(np.concatenate(outlines).reshape(-1, 2) + lo).reshape(-1, 2)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -199,13 +232,12 @@ def blink_phase(
 def _tile_harmonics(t, x, y, p, t0, period_us, acc):
     """Add to ``acc`` per tile: the signed events' DFT at the blink frequency (re, im), their
     count, and the same three for the ON events alone; events before ``t0`` are skipped."""
-    w = 2 * np.pi / period_us
     for i in range(t.shape[0]):
         if t[i] < t0:
             continue
-        a = w * (t[i] - t0)
+        k = _phase_step(t[i] - t0, period_us)
         ty, tx = y[i] // TILE_PX, x[i] // TILE_PX
-        c, s = np.cos(a), -np.sin(a)
+        c, s = _COS[k], -_SIN[k]
         acc[0, ty, tx] += p[i] * c
         acc[1, ty, tx] += p[i] * s
         acc[2, ty, tx] += 1.0
@@ -234,7 +266,9 @@ def blinking_region(parts: list[np.ndarray], config: ReceiverConfig) -> BlinkReg
     span = max(1, int((t_end - int(parts[0]["t"][0])) // period)) * period
     t0 = int(t_end - span)
     acc = np.zeros((6, -(-cam.height // TILE_PX), -(-cam.width // TILE_PX)))
+    step = max(1, sum(len(ev) for ev in parts) // _MAP_SAMPLE)
     for ev in parts:
+        ev = ev[::step]
         _tile_harmonics(ev["t"], ev["x"], ev["y"], ev["p"], t0, period, acc)
     count = acc[2]
     ratio = np.hypot(acc[0], acc[1]) / np.maximum(count, 1.0)
@@ -311,17 +345,16 @@ def orient(
 
 @numba.njit(cache=True, nogil=True)
 def _pixel_harmonics(t, x, y, p, x0, y0, period_us, acc):
-    """Add to ``acc`` per pixel of the box from (x0, y0): the ON events' DFT at the blink
-    frequency (re, im) and their count."""
-    y1, x1 = y0 + acc.shape[1], x0 + acc.shape[2]
-    w = 2 * np.pi / period_us
+    """Add to ``acc`` (rows, columns, 3) per pixel of the box from (x0, y0): the ON events' DFT
+    at the blink frequency (re, im) and their count; a pixel's three sums share a cache line."""
+    y1, x1 = y0 + acc.shape[0], x0 + acc.shape[1]
     for i in range(t.shape[0]):
         if p[i] > 0 and x0 <= x[i] < x1 and y0 <= y[i] < y1:
-            a = w * t[i]
+            k = _phase_step(t[i], period_us)
             yi, xi = y[i] - y0, x[i] - x0
-            acc[0, yi, xi] += np.cos(a)
-            acc[1, yi, xi] -= np.sin(a)
-            acc[2, yi, xi] += 1.0
+            acc[yi, xi, 0] += _COS[k]
+            acc[yi, xi, 1] -= _SIN[k]
+            acc[yi, xi, 2] += 1.0
 
 
 def burst_image(
@@ -340,12 +373,12 @@ def burst_image(
     half a period away. Edges swept by camera motion fire at any phase."""
     since = int(parts[-1]["t"][-1] - periods * period_us)
     x, y, w, h = cv2.boundingRect(mask)
-    acc = np.zeros((3, h, w))
+    acc = np.zeros((h, w, 3))
     for ev in parts:
         if ev["t"][-1] >= since:
             ev = ev[first_at(ev["t"], since) :]
             _pixel_harmonics(ev["t"], ev["x"], ev["y"], ev["p"], x, y, period_us, acc)
-    re, im, count = acc
+    re, im, count = np.moveaxis(acc, -1, 0)
     amplitude = np.hypot(re, im)
     lag = np.angle((re + 1j * im) * np.exp(2j * np.pi * burst_us / period_us))
     inside = (count >= 2) & (amplitude >= 0.5 * count) & (np.abs(lag) <= 0.3 * 2 * np.pi)
@@ -360,19 +393,28 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
     parts = [p for p in ([events] if isinstance(events, np.ndarray) else events) if len(p)]
     if sum(len(p) for p in parts) < 100:
         raise MarkerNotFound("temporal: almost no events in the detection window")
+    period = 1e6 / config.blink_hz
     try:
         region = blinking_region(parts, config)
-        burst = compensated_burst(parts, region.burst_us, 1e6 / config.blink_hz, region.box)
     except MarkerNotFound:  # the still path says why in its own, finer terms
         return _detect_still(parts, config)
-    if not np.any(burst.flow):
+    flow = burst_flow(parts, latest_burst_us(parts, region.burst_us, period), period, region.box)
+    if not np.any(flow):
         return _detect_still(parts, config)
     if not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
         raise MarkerNotFound(
             f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
             f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
         )
-    return _detect_moving(parts, burst, region, config)
+    burst = compensated_burst(parts, region.burst_us, period, region.box, flow)
+    try:
+        return _detect_moving(parts, burst, region, config)
+    except MarkerNotFound as moving_miss:
+        # A small marker's few OFF events can fake a flow: the still path gets its chance too.
+        try:
+            return _detect_still(parts, config)
+        except MarkerNotFound:
+            raise moving_miss from None
 
 
 def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
@@ -441,8 +483,8 @@ def _detect_moving(
     quad = fit_square(burst.image, quad, geo.locator_side, geo.ring) + origin
     check_quadrilateral(quad, params)
     tb = round(burst.t_us)
-    T = _capture_ring(parts, quad, tb, config)
     world = geo.locator_corners(config.marker_size_m)
+    T = _capture_ring(parts, quad, tb, config)
     corners = config.camera.project(world @ T[:3, :3].T + T[:3, 3])
     oriented, score = orient(corners - origin, burst.image, geo)
     if score < params.min_orientation_score:
@@ -469,13 +511,13 @@ def _capture_ring(
     captures started at scaled copies of the locator's quadrilateral (any rotation: the ring is
     square)."""
     events = events_between(parts, t_us - _CAPTURE_HALF_US, t_us + _CAPTURE_HALF_US)
+    events = events[:: max(1, len(events) // _CAPTURE_SAMPLE)]
     cols = to_columns(events, config.camera.undistort_table)
     xu, yu = cols["xu"], cols["yu"]
     centre = quad.mean(axis=0)
     best, best_on = None, -1
     for scale in _CAPTURE_SCALES:
-        start = _solve_pnp(centre + scale * (quad - centre), config)
-        tracker = EdgeTracker(config, start, t_us)
+        tracker = EdgeTracker(config, _solve_pnp(centre + scale * (quad - centre), config), t_us)
         if not tracker.capture(xu, yu, t_us):
             continue
         on = _events_on_edges(tracker.T_cam_world, xu, yu, config)
@@ -489,8 +531,6 @@ def _capture_ring(
 def _events_on_edges(T: np.ndarray, xu: np.ndarray, yu: np.ndarray, config: ReceiverConfig) -> int:
     """How many of the (ideal-pixel) points lie within ``_ON_EDGE_PX`` of a ring edge."""
     edges = project_ideal(T, config.camera.K, config.geometry.tracked_edges(config.marker_size_m))
-    a, d = edges[:, 0], edges[:, 1] - edges[:, 0]  # (8, 2)
-    pts = np.stack([xu, yu], axis=1)[:, None, :].astype(np.float64)  # (n, 1, 2)
-    w = np.clip(np.sum((pts - a) * d, axis=2) / np.sum(d * d, axis=1), 0.0, 1.0)
-    dist = np.linalg.norm(a + w[..., None] * d - pts, axis=2).min(axis=1)
+    a, b = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
+    dist, _ = _nearest_edge(xu, yu, a, b)  # the tracker's compiled kernel
     return int(np.count_nonzero(dist <= _ON_EDGE_PX))

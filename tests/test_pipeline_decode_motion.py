@@ -1,0 +1,158 @@
+"""Decoding while a hand-held camera moves: the read gate that follows the locator's own burst
+spread, the sub-cell grid alignment on the ring, and the receiver's bit error rate on the small
+virtual event camera of ``bench.tracking``, with the tracked pose and with the true one."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from bench.tracking import CAMERA, MESSAGE, hand_held_config, hand_held_scene
+from receiver.pipeline.config import DecoderParams, ReceiverConfig
+from receiver.pipeline.decoder import CellReader
+from receiver.pipeline.receiver import MessageOutput, Receiver
+from receiver.pipeline.report import DecodeLog, FrameTruth
+from receiver.poses import invert
+from receiver.sim import simulate
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+SLOPE_US = 600.0
+"""Scan-out time per locator row (a 60 Hz screen filled by the marker, N = 16)."""
+PX_PER_CELL = 5
+INNER_PX = PX_PER_CELL**2 * (1 - 2 * DecoderParams().cell_margin) ** 2
+"""Pixels inside a cell's inner part."""
+
+
+def _reader() -> CellReader:
+    reader = CellReader(ReceiverConfig(CAMERA), first_burst_us=0.0)
+    reader.clock.slope_us = SLOPE_US
+    return reader
+
+
+def _frame(
+    reader: CellReader,
+    cells: np.ndarray,
+    rng: np.random.Generator,
+    late: np.ndarray | None = None,
+    shift: tuple[float, float] = (0.0, 0.0),
+):
+    """(t, p, u, v) of one ON burst per pixel of the lit ``cells`` (locator grid, 5x5 pixels a
+    cell) at its row's scan-out time with 150 us of jitter, plus one a few ms late on the
+    pixels of ``late``: cells that a neighbour's image sweeps over after the switch. ``shift``
+    moves every burst on the grid, as a pose that trails the camera does."""
+    n = reader.n
+    side = np.arange(PX_PER_CELL) / PX_PER_CELL + 0.5 / PX_PER_CELL
+    grid_u, grid_v = np.meshgrid(np.arange(n)[:, None] + side, np.arange(n)[:, None] + side)
+    u, v = grid_u.ravel(), grid_v.ravel()  # every pixel centre of the locator
+    lit = cells[v.astype(int), u.astype(int)]
+    t = reader.clock.mid(0) + (v - 0.5 - n / 2) * SLOPE_US + rng.normal(0, 150, u.size)
+    keep = lit.copy()
+    if late is not None:
+        swept = late[v.astype(int), u.astype(int)]
+        t[swept] += rng.uniform(3000, 8000, swept.sum())
+        keep |= swept
+    u, v, t = u[keep] + shift[0], v[keep] + shift[1], t[keep]
+    order = np.argsort(t)
+    f32 = np.float32
+    return (
+        t[order].astype(np.int64),
+        np.ones(order.size, np.int8),
+        u[order].astype(f32),
+        v[order].astype(f32),
+    )
+
+
+def _cells(reader: CellReader, payload: np.ndarray) -> np.ndarray:
+    cells = reader.config.geometry.inner_locator.copy()
+    cells[1:-1, 1:-1] = payload
+    return cells
+
+
+def _read(reader: CellReader, t, p, u, v):
+    """The frame as ``CellReader.read`` classifies it, from bursts already on the grid."""
+    reader._retime(0, t, p, u, v)
+    inner = np.full((reader.n, reader.n), INNER_PX)
+    count = reader._aligned_count(t, p, u, v, 0, inner, moving=True)
+    return reader._classify(0, count / inner, int(count.sum()))
+
+
+def test_read_gate_narrows_to_the_locator_bursts_and_drops_swept_cells():
+    rng = np.random.default_rng(0)
+    reader = _reader()
+    payload = rng.integers(0, 2, (16, 16)).astype(bool)
+    cells = _cells(reader, payload)
+    late = np.zeros_like(cells)
+    late[1:-1, 1:-1] = ~payload & (rng.random((16, 16)) < 0.5)  # half the black cells swept
+    wide = reader.gate
+    read = _read(reader, *_frame(reader, cells, rng, late))
+    lo, hi = reader.gate
+    assert wide[0] < lo < -300 and 300 < hi < 1500 < wide[1], reader.gate
+    assert np.array_equal(read.bits, payload)
+
+
+def test_a_grid_that_trails_by_a_third_of_a_cell_is_pulled_back_onto_the_ring():
+    rng = np.random.default_rng(1)
+    reader = _reader()
+    cells = _cells(reader, rng.integers(0, 2, (16, 16)).astype(bool))
+    t, p, u, v = _frame(reader, cells, np.random.default_rng(2))
+    reader._retime(0, t, p, u, v)
+    truth = reader._count(t, p, u, v, 0)[0]
+    shifted = (u + np.float32(0.35), v - np.float32(0.35))
+    assert reader._count(t, p, *shifted, 0)[0][~cells].max() > 0  # white spills into black cells
+    inner = np.full((reader.n, reader.n), INNER_PX)
+    aligned = reader._aligned_count(t, p, *shifted, 0, inner, moving=True)
+    assert aligned[~cells].max() == 0
+    assert np.abs(aligned - truth).max() <= 1  # a pixel on a cell's inner border may flip
+
+
+def test_a_non_positive_pose_step_is_refused():
+    config = ReceiverConfig(CAMERA, decoder=DecoderParams(step_us=0))
+    with pytest.raises(ValueError, match="step_us must be positive"):
+        CellReader(config, first_burst_us=0.0)
+
+
+def _decode(flow_px_per_ms: float, duration_s: float, true_pose: bool = False, seed: int = 0):
+    """The hand-held scene decoded with the tracked pose, or with the true one injected (the
+    decoder's own floor)."""
+    scene = hand_held_scene(flow_px_per_ms, seed)
+    rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
+    rx = Receiver(hand_held_config())
+    if true_pose:
+        rx.pose_at = lambda t_us: invert(rec.pose_at(np.array([t_us]))[0])
+    log = DecodeLog(rx, FrameTruth(scene.encoder, scene.display.refresh_hz))
+    for chunk in rec:
+        log.add(rx.push(chunk))
+    return log
+
+
+@pytest.fixture(scope="module")
+def tracked_half_px() -> DecodeLog:
+    return _decode(0.5, 0.6)
+
+
+def test_bits_under_half_a_pixel_per_ms_with_the_tracked_pose(tracked_half_px):
+    log = tracked_half_px
+    assert log.frames >= 12, f"only {log.frames} frames showed the inner locator"
+    assert log.ber is not None and log.ber <= 0.04, f"BER {log.ber:.3f} before FEC"
+
+
+def test_the_decoders_own_floor_with_the_true_pose():
+    log = _decode(0.5, 0.6, true_pose=True)
+    assert log.frames >= 12 and log.ber is not None and log.ber <= 0.02, log.ber
+
+
+@pytest.mark.slow
+def test_the_message_decodes_under_half_a_pixel_per_ms():
+    log = _decode(0.5, 3.0)
+    assert [m.message.data for m in log.messages] == [MESSAGE], log.receiver.stream.progress()
+    assert isinstance(log.messages[0], MessageOutput)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("flow", [1.0])
+def test_the_decoders_own_floor_at_a_pixel_per_ms(flow):
+    log = _decode(flow, 1.0, true_pose=True)
+    assert log.ber is not None and log.ber <= 0.05, log.ber
