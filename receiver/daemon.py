@@ -40,7 +40,7 @@ from occ.report import (
     TrackingState,
 )
 from receiver.pipeline.receiver import FrameOutput, MessageOutput, Output, PoseEstimate, StateChange
-from receiver.poses import format_seconds, pose_to_tum_row
+from receiver.poses import TUM_HEADER, format_seconds, pose_to_tum_row, tum_lines
 from receiver.sources import EventSource, LinkSettings
 
 log = logging.getLogger(__name__)
@@ -87,7 +87,7 @@ class DaemonConfig:
 
 class LinkFollower:
     """Keeps the pipeline built for what the transmitter sends, but for what the user pinned
-    (``--profile``, ``--cells``)."""
+    (``--profile``, ``--cells``, ``--refresh-hz``)."""
 
     def __init__(
         self,
@@ -96,15 +96,18 @@ class LinkFollower:
         *,
         profile: str | None = None,
         cells: int | None = None,
+        refresh_hz: float | None = None,
     ) -> None:
         self.build = build
-        self.pinned = (profile, cells)
+        self.pinned = (profile, cells, refresh_hz)
         self.receiving = self.settings_for(sending)
         """What the current pipeline is built for."""
 
     def settings_for(self, sending: LinkSettings) -> LinkSettings:
-        profile, cells = self.pinned
-        return LinkSettings(profile or sending.profile, cells or sending.cells)
+        profile, cells, refresh_hz = self.pinned
+        return LinkSettings(
+            profile or sending.profile, cells or sending.cells, refresh_hz or sending.refresh_hz
+        )
 
     def pipeline(self) -> Pipeline:
         return self.build(self.receiving)
@@ -114,22 +117,20 @@ class LinkFollower:
         wanted = self.settings_for(sending)
         if wanted != sending:
             log.warning(
-                "the transmitter sends %s with %d cells but the receiver is pinned to %s with "
-                "%d: drop --profile/--cells to follow it",
-                sending.profile,
-                sending.cells,
-                wanted.profile,
-                wanted.cells,
+                "the transmitter sends %s but the receiver is pinned to %s: drop "
+                "--profile/--cells/--refresh-hz to follow it",
+                describe(sending),
+                describe(wanted),
             )
         if wanted == self.receiving:
             return None
-        log.info(
-            "the transmitter switched to %s with %d cells: rebuilding the receiver for them",
-            wanted.profile,
-            wanted.cells,
-        )
+        log.info("the transmitter switched to %s: rebuilding the receiver", describe(wanted))
         self.receiving = wanted
         return self.pipeline()
+
+
+def describe(link: LinkSettings) -> str:
+    return f"{link.profile} with {link.cells} cells at {link.refresh_hz:g} Hz"
 
 
 @dataclass
@@ -153,18 +154,24 @@ class OutputFolder:
         self.messages.mkdir(parents=True, exist_ok=True)
         self.trajectory = self.root / "trajectory.tum"
         if not self.trajectory.exists():
-            self.trajectory.write_text(
-                "# t tx ty tz qx qy qz qw (T_world_cam, marker frame, metres)\n"
-            )
+            self.trajectory.write_text(TUM_HEADER)
+        self._poses: list[PoseEstimate] = []
 
     def append_poses(self, poses: list[PoseEstimate]) -> None:
-        rows = pose_to_tum_row(np.stack([p.T_world_cam for p in poses]))
-        lines = (
-            format_seconds(p.t_us) + " " + " ".join(f"{v:.9f}" for v in row) + "\n"
-            for p, row in zip(poses, rows, strict=True)
+        """Queue poses for the trajectory file (``flush_poses`` writes them)."""
+        self._poses.extend(poses)
+
+    def flush_poses(self) -> None:
+        # Batched: a kilohertz of poses formatted and appended chunk by chunk cost the daemon
+        # a tenth of a core.
+        if not self._poses:
+            return
+        lines = tum_lines(
+            [p.t_us for p in self._poses], np.stack([p.T_world_cam for p in self._poses])
         )
         with self.trajectory.open("a") as f:
-            f.writelines(lines)
+            f.write(lines)
+        self._poses.clear()
 
     def write_health(self, report: HealthReport) -> None:
         """``health.json``: its age tells a supervisor (a container health check) we are alive."""
@@ -216,6 +223,7 @@ class Daemon:
                 self.process(chunk)
         finally:
             sys.setswitchinterval(switch_interval)
+            self.output.flush_poses()
         self.state = TrackingState.IDLE
         self.publish_news(None)
         return self.summary
@@ -228,6 +236,7 @@ class Daemon:
         self.handle(self.pipeline.push(chunk))
         if time.monotonic() >= self._next_news:
             self._next_news = time.monotonic() + 1.0 / self.config.news_hz
+            self.output.flush_poses()
             self.publish_news(chunk)
 
     def follow_transmitter(self) -> None:

@@ -45,12 +45,22 @@ def format_seconds(t_us: int) -> str:
     return f"{sign}{whole}.{frac:06d}"
 
 
+TUM_HEADER = "# t tx ty tz qx qy qz qw (T_world_cam, marker frame, metres)\n"
+_TUM_VALUES = " %.9f" * 7 + "\n"
+
+
+def tum_lines(t_us: np.ndarray | list[int], T_world_cam: np.ndarray) -> str:
+    """TUM rows of poses at integer microsecond times (the times printed exactly)."""
+    rows = pose_to_tum_row(np.asarray(T_world_cam).reshape(-1, 4, 4)).tolist()
+    times = np.asarray(t_us).ravel().tolist()
+    return "".join(
+        format_seconds(t) + _TUM_VALUES % tuple(row) for t, row in zip(times, rows, strict=True)
+    )
+
+
 def write_tum(path: str | Path, t_us: np.ndarray, T_world_cam: np.ndarray) -> None:
-    rows = pose_to_tum_row(np.asarray(T_world_cam).reshape(-1, 4, 4))
     with open(path, "w") as f:
-        f.write("# t tx ty tz qx qy qz qw (T_world_cam, marker frame, metres)\n")
-        for t, row in zip(np.asarray(t_us).ravel(), rows, strict=True):
-            f.write(format_seconds(t) + " " + " ".join(f"{v:.9f}" for v in row) + "\n")
+        f.write(TUM_HEADER + tum_lines(t_us, T_world_cam))
 
 
 class TrajectoryFileError(ValueError):

@@ -48,10 +48,17 @@ class EventSource(Protocol):
 
 @dataclass(frozen=True)
 class LinkSettings:
-    """What the receiver pipeline must be told about the screen: its link profile and cells."""
+    """What the receiver pipeline must be told about the screen: its link profile, cells and
+    refresh rate."""
 
     profile: str
     cells: int
+    refresh_hz: float = 60.0
+    """Whole hertz: a page's measured rate wobbles by a fraction of a hertz, which the receiver
+    absorbs (it re-times every frame from its own burst) and must not rebuild for."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "refresh_hz", float(round(self.refresh_hz)))
 
 
 class LiveClock:

@@ -270,7 +270,8 @@ class VirtualCamera:
             hz = s["refresh_hz"] or 60.0
             age_s = (datetime.now(UTC) - datetime.fromisoformat(s["received"])).total_seconds()
             frame_now = s["frame_index"] + max(0, round(age_s * hz))
-            return Showing(s["message_id"], LinkSettings(s["profile"], s["cells"]), hz, frame_now)
+            link = LinkSettings(s["profile"], s["cells"], hz)
+            return Showing(s["message_id"], link, hz, frame_now)
         messages = json.loads(self._get("/api/messages") or b'{"messages": []}')["messages"]
         if not messages:
             return None
@@ -357,10 +358,11 @@ class VirtualCamera:
                 continue
             if self._watching is None or not showing.same_stream(self._watching):
                 log.info(
-                    "virtual camera watching message %s (%s, %d cells) from frame %d",
+                    "virtual camera watching message %s (%s, %d cells, %.1f Hz) from frame %d",
                     showing.message_id,
                     showing.link.profile,
                     showing.link.cells,
+                    showing.refresh_hz,
                     showing.frame_now,
                 )
             self._watching, self.link = showing, showing.link

@@ -196,35 +196,52 @@ def test_virtual_camera_needs_an_http_url() -> None:
 
 
 @pytest.mark.parametrize(
-    ("pinned", "built_after_the_switch"),
+    ("pinned", "built"),
     [
-        ({}, [FAST_12]),
-        ({"cells": 16}, [LinkSettings("fast", 16)]),
-        ({"profile": "robust", "cells": 16}, []),
+        ({}, [ROBUST_16, FAST_12]),
+        ({"cells": 16}, [ROBUST_16, LinkSettings("fast", 16)]),
+        ({"profile": "robust", "cells": 16}, [ROBUST_16]),
+        ({"refresh_hz": 144.0}, [LinkSettings("robust", 16, 144), LinkSettings("fast", 12, 144)]),
     ],
 )
 def test_daemon_follows_the_transmitters_link_settings_unless_pinned(
-    tmp_path, caplog, pinned: dict, built_after_the_switch: list
+    tmp_path, caplog, pinned: dict, built: list
 ) -> None:
-    built: list[LinkSettings] = []
+    daemon, first, builds = follow(tmp_path, caplog, [ROBUST_16] * 3 + [FAST_12] * 3, **pinned)
+    rebuilt = len(built) > 1
+    assert builds == built
+    assert daemon.summary.rebuilds == len(built) - 1
+    assert first.chunks == (3 if rebuilt else 6), "the old pipeline stops"
+    assert daemon.pipeline.chunks == 3 or not rebuilt
+    assert ("rebuilding the receiver" in caplog.text) == rebuilt
+    assert ("is pinned to" in caplog.text) == bool(pinned)
+
+
+def test_daemon_follows_a_new_refresh_rate_but_not_its_wobble(tmp_path, caplog) -> None:
+    measured = [59.9, 60.2, 60.0, 143.8, 144.3, 144.0]
+    links = [LinkSettings("robust", 16, hz) for hz in measured]
+    *_, builds = follow(tmp_path, caplog, links)
+    assert builds == [ROBUST_16, LinkSettings("robust", 16, 144.0)]
+    assert "robust with 16 cells at 144 Hz" in caplog.text
+
+
+def follow(tmp_path, caplog, links: list[LinkSettings], **pinned):
+    """Run a daemon whose source reports ``links``, one per chunk; return it, its first
+    pipeline and the link settings of every pipeline built."""
+    builds: list[LinkSettings] = []
 
     def build(link: LinkSettings) -> ScriptedPipeline:
-        built.append(link)
+        builds.append(link)
         return ScriptedPipeline(message_on_chunk=0)
 
-    follower = LinkFollower(build, ROBUST_16, **pinned)
+    follower = LinkFollower(build, links[0], **pinned)
     first = follower.pipeline()
-    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(6)]
-    source = WatchingSource(chunks, [ROBUST_16] * 3 + [FAST_12] * 3)
+    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(len(links))]
+    source = WatchingSource(chunks, links)
     daemon = Daemon(source, first, ListSink(), OutputFolder(tmp_path / "out"), follower=follower)
     with caplog.at_level("INFO", logger="receiver.daemon"):
         daemon.run()
-    assert built == [ROBUST_16, *built_after_the_switch]
-    assert daemon.summary.rebuilds == len(built_after_the_switch)
-    assert first.chunks == (3 if built_after_the_switch else 6), "the old pipeline stops"
-    assert daemon.pipeline.chunks == 3 or not built_after_the_switch
-    assert ("rebuilding the receiver" in caplog.text) == bool(built_after_the_switch)
-    assert ("is pinned to" in caplog.text) == bool(pinned)
+    return daemon, first, builds
 
 
 def test_without_a_follower_the_pipeline_stays_as_built(tmp_path) -> None:

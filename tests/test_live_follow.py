@@ -29,13 +29,13 @@ def post(base_url: str, path: str, body: dict) -> dict:
         return json.load(response)
 
 
-def play(base_url: str, message: dict) -> None:
+def play(base_url: str, message: dict, refresh_hz: float = 60.0) -> None:
     """Report what a transmitter page showing ``message`` would report."""
     status = {"message_id": message["id"], "profile": message["profile"], "playing": True}
     post(
         base_url,
         "/api/transmitter/status",
-        {**status, "cells": message["cells"], "frame_index": 0, "refresh_hz": 60.0},
+        {**status, "cells": message["cells"], "frame_index": 0, "refresh_hz": refresh_hz},
     )
 
 
@@ -88,13 +88,14 @@ def test_daemon_rebuilds_its_receiver_when_the_transmitter_switches(
     play(base_url, robust)
     daemon = DaemonProcess(base_url, tmp_path / "out", *pinned)
     try:
-        daemon.wait_for("profile robust, 16 cells")
+        daemon.wait_for("robust with 16 cells at 60 Hz")
         daemon.wait_for(f"watching message {robust['id']}")
-        play(base_url, fast)
-        daemon.wait_for(f"watching message {fast['id']} (fast, 12 cells)")
+        play(base_url, fast, refresh_hz=143.9)  # a 144 Hz page's measured rate
+        daemon.wait_for(f"watching message {fast['id']} (fast, 12 cells, 143.9 Hz)")
         if pinned:
-            daemon.wait_for("the transmitter sends fast with 12 cells but the receiver is pinned")
-        daemon.wait_for(f"switched to fast with {12 if not pinned else 16} cells: rebuilding")
+            daemon.wait_for("sends fast with 12 cells at 144 Hz but the receiver is pinned")
+        cells = 16 if pinned else 12
+        daemon.wait_for(f"switched to fast with {cells} cells at 144 Hz: rebuilding")
     finally:
         log = daemon.stop()
     assert daemon.process.returncode == 0, log

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 from receiver.camera import CameraModel
-from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder
+from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder, describe
 from receiver.sources import LinkSettings, SourceError, open_source
 from receiver.virtual_camera import DEFAULT_MOTION, MOTIONS, VirtualCamera
 
@@ -68,7 +68,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=int,
         help="pin the payload side N (sim: followed from the server unless pinned; else 16)",
     )
-    p.add_argument("--refresh-hz", type=float, default=60.0, help="the display's refresh rate")
+    p.add_argument(
+        "--refresh-hz",
+        type=float,
+        help="pin the display's refresh rate (sim: followed from the server unless pinned; "
+        "else 60)",
+    )
     p.add_argument("--marker-size", type=float, default=0.272, help="marker side on screen, metres")
     p.add_argument(
         "--motion",
@@ -154,7 +159,7 @@ def _run(args: argparse.Namespace) -> int:
                 camera,
                 cells=link.cells,
                 profile=link.profile,
-                refresh_hz=args.refresh_hz,
+                refresh_hz=link.refresh_hz,
                 marker_size_m=args.marker_size,
                 # A real-time source must not fall behind while detection keeps failing.
                 detector=DetectorParams(
@@ -165,7 +170,9 @@ def _run(args: argparse.Namespace) -> int:
 
     knows_what_is_sent = isinstance(source, VirtualCamera)
     sending = source.link_settings() if knows_what_is_sent else DEFAULT_LINK
-    follower = LinkFollower(build, sending, profile=args.profile, cells=args.cells)
+    follower = LinkFollower(
+        build, sending, profile=args.profile, cells=args.cells, refresh_hz=args.refresh_hz
+    )
     output = OutputFolder(args.out)
     spool = Spool(output.root / "spool.db")
     stop = threading.Event()
@@ -180,11 +187,10 @@ def _run(args: argparse.Namespace) -> int:
     )
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     log.info(
-        "receiver %s: %s, profile %s, %d cells -> %s; output in %s",
+        "receiver %s: %s, %s -> %s; output in %s",
         spool.receiver_id,
         args.source,
-        follower.receiving.profile,
-        follower.receiving.cells,
+        describe(follower.receiving),
         args.server,
         output.root,
     )
