@@ -24,6 +24,7 @@ question.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -265,16 +266,7 @@ def fit_square(image: np.ndarray, quad: np.ndarray, locator_side: int, ring: int
     turn = np.angle(np.mean(np.exp(4j * np.arctan2(sides[:, 1], sides[:, 0])))) / 4
 
     def contrast(h: np.ndarray) -> np.ndarray:
-        """Inner minus outer band brightness of squares h = (cx, cy, side, turn), (k, 4)."""
-        c, s = np.cos(h[:, 3:]), np.sin(h[:, 3:])
-        band = []
-        for u in (inner, outer):
-            x = h[:, :1] + h[:, 2:3] * (c * u[:, 0] - s * u[:, 1])
-            y = h[:, 1:2] + h[:, 2:3] * (s * u[:, 0] + c * u[:, 1])
-            xi = np.clip(np.rint(x).astype(np.int64), 0, lit.shape[1] - 1)
-            yi = np.clip(np.rint(y).astype(np.int64), 0, lit.shape[0] - 1)
-            band.append(lit[yi, xi].mean(axis=1))
-        return band[0] - band[1]
+        return _square_contrast(lit, np.ascontiguousarray(h), inner, outer)
 
     def grid(*axes: np.ndarray) -> np.ndarray:
         return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
@@ -295,6 +287,32 @@ def fit_square(image: np.ndarray, quad: np.ndarray, locator_side: int, ring: int
     rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     unit = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
     return np.array([cx, cy]) + length * unit @ rotation.T
+
+
+@numba.njit(cache=True)
+def _square_contrast(
+    lit: np.ndarray, h: np.ndarray, inner: np.ndarray, outer: np.ndarray
+) -> np.ndarray:
+    """Inner minus outer band brightness of squares h = (cx, cy, side, turn), (k, 4): ten
+    thousand hypotheses of two hundred samples each, which numpy spent 0.2 s of temporaries
+    on."""
+    out = np.empty(h.shape[0])
+    for k in range(h.shape[0]):
+        c, s = math.cos(h[k, 3]), math.sin(h[k, 3])
+        out[k] = _band_mean(lit, h[k], c, s, inner) - _band_mean(lit, h[k], c, s, outer)
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _band_mean(lit, hk, c, s, band):
+    total = 0.0
+    for q in range(band.shape[0]):
+        x = hk[0] + hk[2] * (c * band[q, 0] - s * band[q, 1])
+        y = hk[1] + hk[2] * (s * band[q, 0] + c * band[q, 1])
+        xi = min(max(int(np.rint(x)), 0), lit.shape[1] - 1)
+        yi = min(max(int(np.rint(y)), 0), lit.shape[0] - 1)
+        total += lit[yi, xi]
+    return total / band.shape[0]
 
 
 def quadrilateral(points: np.ndarray) -> np.ndarray:
