@@ -85,20 +85,29 @@ class DaemonConfig:
             raise ValueError(f"rates must be positive, got {self.pose_hz}, {self.news_hz} Hz")
 
 
+class Screen(Protocol):
+    link: LinkSettings | None
+    """What the watched screen sends now (None: not known yet)."""
+
+
 class LinkFollower:
-    """Keeps the pipeline built for what the transmitter sends, but for what the user pinned
-    (``--profile``, ``--cells``, ``--refresh-hz``)."""
+    """Keeps the pipeline built for what the transmitter sends (``screen.link``), but for what
+    the user pinned (``--profile``, ``--cells``, ``--refresh-hz``)."""
 
     def __init__(
         self,
         build: Callable[[LinkSettings], Pipeline],
+        screen: Screen | None,
         sending: LinkSettings,
         *,
         profile: str | None = None,
         cells: int | None = None,
         refresh_hz: float | None = None,
     ) -> None:
+        """``sending``: what the screen sends at the start; no ``screen``: nothing to follow
+        (a recording), the pipeline stays as built."""
         self.build = build
+        self.screen = screen
         self.pinned = (profile, cells, refresh_hz)
         self.receiving = self.settings_for(sending)
         """What the current pipeline is built for."""
@@ -196,7 +205,7 @@ class Daemon:
         config: DaemonConfig | None = None,
         follower: LinkFollower | None = None,
     ) -> None:
-        """Without a ``follower`` the pipeline stays as built, whatever the source says."""
+        """Without a ``follower`` the pipeline stays as built, whatever the screen sends."""
         self.source = source
         self.pipeline = pipeline
         self.sink = sink
@@ -240,9 +249,11 @@ class Daemon:
             self.publish_news(chunk)
 
     def follow_transmitter(self) -> None:
-        """Rebuild the pipeline when the source says the screen's link settings changed."""
-        sending = getattr(self.source, "link", None)
-        if self.follower is None or sending is None or sending == self._sending:
+        """Rebuild the pipeline when the screen's link settings changed."""
+        if self.follower is None or self.follower.screen is None:
+            return
+        sending = self.follower.screen.link
+        if sending is None or sending == self._sending:
             return
         self._sending = sending
         if (pipeline := self.follower.follow(sending)) is not None:

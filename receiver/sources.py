@@ -34,8 +34,7 @@ class SourceError(RuntimeError):
 
 
 class EventSource(Protocol):
-    """Optional extras, read by the daemon when present: ``link`` (``LinkSettings`` of what the
-    watched screen sends, for a source that knows it) and ``speed`` (seconds of events per
+    """Optional extra, read by the daemon when present: ``speed`` (seconds of events per
     wall-clock second, for a source that can fall behind real time)."""
 
     width: int

@@ -23,11 +23,8 @@ import queue
 import signal
 import threading
 import time
-import urllib.error
-import urllib.request
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
-from datetime import UTC, datetime
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -35,6 +32,7 @@ import numpy as np
 from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.events import empty_events
+from receiver.screen import Showing, TransmitterClient
 from receiver.sources import LinkSettings, LiveClock, SourceError
 
 log = logging.getLogger(__name__)
@@ -74,19 +72,6 @@ def virtual_sensor():
     return replace(
         SensorModel.preset("ideal"), threshold_on=1.0, threshold_off=1.0, refractory_us=200.0
     )
-
-
-@dataclass(frozen=True)
-class Showing:
-    """What the transmitter shows: a message, its link settings and the frame on screen now."""
-
-    message_id: str
-    link: LinkSettings
-    refresh_hz: float
-    frame_now: int
-
-    def same_stream(self, other: Showing) -> bool:
-        return (self.message_id, self.link) == (other.message_id, other.link)
 
 
 class Simulator(Protocol):
@@ -220,13 +205,9 @@ class VirtualCamera:
         simulator: Simulator | None = None,
     ) -> None:
         """``simulator`` defaults to a ``SimulatorProcess``, started on the first ``chunks``."""
-        if not server_url.startswith(("http://", "https://")):
-            raise SourceError(
-                f"the virtual camera needs the server's http(s) URL, got {server_url!r}"
-            )
+        self.server = TransmitterClient(server_url, who="the virtual camera")
         if motion not in MOTIONS:
             raise SourceError(f"unknown motion {motion!r}; choose one of {', '.join(MOTIONS)}")
-        self.server_url = server_url.rstrip("/")
         self.camera = camera or default_camera()
         self.width, self.height = self.camera.width, self.camera.height
         self.motion = motion
@@ -248,54 +229,12 @@ class VirtualCamera:
         self._last_t = -1
         self._behind_note = _BehindNote()
 
-    # --- asking the server ---
-
-    def _get(self, path: str) -> bytes | None:
-        """The body of GET ``path``; None on 404 (nothing there yet)."""
-        try:
-            with urllib.request.urlopen(self.server_url + path, timeout=5) as response:
-                return response.read()
-        except urllib.error.HTTPError as error:
-            if error.code == 404:
-                return None
-            raise
-
-    def showing(self) -> Showing | None:
-        """What the transmitter shows now; its newest upload from frame 0 if no page reported."""
-        status = self._get("/api/transmitter/status")
-        if status is not None:
-            s = json.loads(status)
-            if not (s["playing"] and s["message_id"]):
-                return None
-            hz = s["refresh_hz"] or 60.0
-            age_s = (datetime.now(UTC) - datetime.fromisoformat(s["received"])).total_seconds()
-            frame_now = s["frame_index"] + max(0, round(age_s * hz))
-            link = LinkSettings(s["profile"], s["cells"], hz)
-            return Showing(s["message_id"], link, hz, frame_now)
-        messages = json.loads(self._get("/api/messages") or b'{"messages": []}')["messages"]
-        if not messages:
-            return None
-        newest = messages[0]
-        return Showing(newest["id"], LinkSettings(newest["profile"], newest["cells"]), 60.0, 0)
-
-    def link_settings(self) -> LinkSettings:
-        """What the transmitter sends now, else the server's defaults (the receiver must be
-        built before anything plays)."""
-        try:
-            showing = self.showing()
-            if showing is not None:
-                return showing.link
-            defaults = json.loads(self._get("/api/profiles") or b"{}")
-            return LinkSettings(defaults["default_profile"], defaults["default_cells"])
-        except OSError as error:
-            raise SourceError(f"cannot ask {self.server_url} what it transmits: {error}") from None
-
     def encoder(self, showing: Showing) -> StreamEncoder:
         """The stream's encoder, fetched once per stream (a skip ahead reuses it)."""
         if self._encoder is not None and self._encoder[0].same_stream(showing):
             return self._encoder[1]
-        meta = json.loads(self._get(f"/api/messages/{showing.message_id}") or b"null")
-        data = self._get(f"/api/messages/{showing.message_id}/content")
+        meta = json.loads(self.server.get(f"/api/messages/{showing.message_id}") or b"null")
+        data = self.server.get(f"/api/messages/{showing.message_id}/content")
         if meta is None or data is None:
             raise LookupError(f"message {showing.message_id} is gone")
         link = showing.link
@@ -401,7 +340,7 @@ class VirtualCamera:
     def _something_to_watch(self) -> Showing | None:
         """``showing()``, with a failure logged once rather than raised: the camera waits."""
         try:
-            showing = self.showing()
+            showing = self.server.showing()
             reason = "nothing is playing"
         except (OSError, LookupError) as error:
             showing, reason = None, f"server unreachable ({error})"

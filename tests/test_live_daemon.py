@@ -234,10 +234,10 @@ def follow(tmp_path, caplog, links: list[LinkSettings], **pinned):
         builds.append(link)
         return ScriptedPipeline(message_on_chunk=0)
 
-    follower = LinkFollower(build, links[0], **pinned)
-    first = follower.pipeline()
     chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(len(links))]
     source = WatchingSource(chunks, links)
+    follower = LinkFollower(build, source, links[0], **pinned)
+    first = follower.pipeline()
     daemon = Daemon(source, first, ListSink(), OutputFolder(tmp_path / "out"), follower=follower)
     with caplog.at_level("INFO", logger="receiver.daemon"):
         daemon.run()

@@ -1,5 +1,6 @@
 """The receiver daemon (real CLI, virtual camera, real server) follows the transmitter when it
-switches to a message with other link settings, unless ``--profile/--cells`` pin them."""
+switches to a message with other link settings, unless ``--profile/--cells`` pin them; a live
+camera's daemon follows the page through ``ScreenWatch``."""
 
 from __future__ import annotations
 
@@ -14,6 +15,9 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+
+from receiver.screen import ScreenWatch, TransmitterClient
+from receiver.sources import LinkSettings
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -99,3 +103,23 @@ def test_daemon_rebuilds_its_receiver_when_the_transmitter_switches(
     finally:
         log = daemon.stop()
     assert daemon.process.returncode == 0, log
+
+
+def test_screen_watch_follows_the_page_and_survives_an_absent_server(serve_app, caplog) -> None:
+    base_url, _ = serve_app()
+    watch = ScreenWatch(TransmitterClient(base_url), LinkSettings("paper", 8), every_s=0.05)
+    assert watch.link == LinkSettings("robust", 16), "nothing plays: the server's defaults"
+    watch.start()
+    try:
+        fast = post(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
+        play(base_url, fast, refresh_hz=143.9)
+        deadline = time.monotonic() + 10
+        while watch.link != LinkSettings("fast", 12, 144) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert watch.link == LinkSettings("fast", 12, 144)
+    finally:
+        watch.stop()
+
+    nobody = ScreenWatch(TransmitterClient("http://127.0.0.1:9"), LinkSettings("paper", 8))
+    assert nobody.link == LinkSettings("paper", 8)
+    assert "assuming" in caplog.text and "until it answers" in caplog.text

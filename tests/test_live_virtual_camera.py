@@ -14,10 +14,10 @@ import pytest
 
 from occ.stream import StreamEncoder
 from receiver.events import make_events
+from receiver.screen import Showing
 from receiver.sources import LinkSettings, LiveClock, SourceError
 from receiver.virtual_camera import (
     MAX_LAG_S,
-    Showing,
     SimulatorInThread,
     SimulatorProcess,
     VirtualCamera,
@@ -62,7 +62,7 @@ def camera(monkeypatch):
         clock=LiveClock(clock=wall.clock, sleep=wall.sleep),
         simulator=SimulatorInThread(CHUNK_US),  # it calls the patched simulate
     )
-    monkeypatch.setattr(camera, "showing", lambda: showing[0])
+    monkeypatch.setattr(camera.server, "showing", lambda: showing[0])
     monkeypatch.setattr(camera, "encoder", lambda showing: None)
     monkeypatch.setattr(camera, "scene", lambda encoder, showing: showing)
     return camera, wall, showing

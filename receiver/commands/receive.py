@@ -9,6 +9,10 @@ when it is back. Ctrl-C stops it.
 Sources: ``sim:`` (default) the virtual event camera watching what the server's transmitter
 plays; ``file:PATH`` or ``PATH`` a recording; ``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live
 camera through an optional backend.
+
+The receiver follows the link settings (profile, cells, refresh rate) of the server's
+transmitter page: the virtual camera's, and a live camera's, which is taken to watch that page.
+``--profile``, ``--cells`` and ``--refresh-hz`` pin them; a recording uses them or the defaults.
 """
 
 from __future__ import annotations
@@ -23,8 +27,9 @@ from pathlib import Path
 
 from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 from receiver.camera import CameraModel
-from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder, describe
-from receiver.sources import LinkSettings, SourceError, open_source
+from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder, Screen, describe
+from receiver.screen import ScreenWatch, TransmitterClient
+from receiver.sources import EventSource, LinkSettings, RecordingSource, SourceError, open_source
 from receiver.virtual_camera import DEFAULT_MOTION, MOTIONS, VirtualCamera
 
 log = logging.getLogger(__name__)
@@ -60,19 +65,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--profile",
         choices=PROFILE_NAMES,
-        help="pin the transmitter's link profile (sim: followed from the server unless pinned; "
-        f"else {DEFAULT_PROFILE})",
+        help=f"pin the link profile (default: the transmitter's; recordings: {DEFAULT_PROFILE})",
     )
     p.add_argument(
         "--cells",
         type=int,
-        help="pin the payload side N (sim: followed from the server unless pinned; else 16)",
+        help="pin the payload side N (default: the transmitter's; recordings: 16)",
     )
     p.add_argument(
         "--refresh-hz",
         type=float,
-        help="pin the display's refresh rate (sim: followed from the server unless pinned; "
-        "else 60)",
+        help="pin the display's refresh rate in Hz (default: the transmitter page's; "
+        "recordings: 60)",
     )
     p.add_argument("--marker-size", type=float, default=0.272, help="marker side on screen, metres")
     p.add_argument(
@@ -133,6 +137,18 @@ def _camera(args: argparse.Namespace) -> CameraModel:
     return CameraModel.paper()
 
 
+def _screen(source: EventSource, server_url: str) -> tuple[Screen | None, LinkSettings]:
+    """What tells the daemon the screen's link settings, and what it sends now: the virtual
+    camera knows what it simulates; a live camera is taken to watch the server's transmitter
+    page; a recording shows whatever it recorded (the defaults, unless pinned)."""
+    if isinstance(source, VirtualCamera):
+        return source, source.server.link_settings()
+    if isinstance(source, RecordingSource):
+        return None, DEFAULT_LINK
+    watch = ScreenWatch(TransmitterClient(server_url), DEFAULT_LINK).start()
+    return watch, watch.link
+
+
 def _run(args: argparse.Namespace) -> int:
     from receiver.pipeline.config import LIVE_CPU_SHARE, DetectorParams, ReceiverConfig
     from receiver.pipeline.receiver import Receiver
@@ -168,10 +184,9 @@ def _run(args: argparse.Namespace) -> int:
             )
         )
 
-    knows_what_is_sent = isinstance(source, VirtualCamera)
-    sending = source.link_settings() if knows_what_is_sent else DEFAULT_LINK
+    screen, sending = _screen(source, args.server)
     follower = LinkFollower(
-        build, sending, profile=args.profile, cells=args.cells, refresh_hz=args.refresh_hz
+        build, screen, sending, profile=args.profile, cells=args.cells, refresh_hz=args.refresh_hz
     )
     output = OutputFolder(args.out)
     spool = Spool(output.root / "spool.db")
@@ -183,7 +198,7 @@ def _run(args: argparse.Namespace) -> int:
         publisher.start(),
         output,
         DaemonConfig(pose_hz=args.pose_hz),
-        follower if knows_what_is_sent else None,
+        follower,
     )
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     log.info(
@@ -199,6 +214,8 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         summary = daemon.summary
     finally:
+        if isinstance(screen, ScreenWatch):
+            screen.stop()
         publisher.close()
         left = len(spool)
         spool.close()
