@@ -120,10 +120,18 @@ def test_wrong_profile_locks_but_never_delivers_a_wrong_message():
     assert log.report()["messages"] == []  # frames fail their CRC: nothing unverified comes out
 
 
+def test_the_smallest_grid_decodes():
+    # 8 x 8 cells carry 8 bytes a frame: the paper's codes only (robust and fast need 12 for
+    # their header and parity, and say so).
+    log, _ = _run(_scene("paper", STATIC, cells=8), 2.5, message_size=len(MESSAGE))
+    assert log.ber == 0.0
+    assert [m.message.data for m in log.messages] == [MESSAGE]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("profile", "cells", "refresh_hz"),
-    [("paper", 80, 60.0), ("robust", 64, 120.0), ("fast", 32, 240.0)],
+    [("paper", 80, 60.0), ("robust", 64, 120.0), ("fast", 32, 240.0), ("robust", 128, 120.0)],
 )
 def test_full_size_sensor_decodes(profile, cells, refresh_hz):
     # The paper's setup: 1280x720 behind its lens, the marker filling the view.
