@@ -11,6 +11,7 @@ import argparse
 import hashlib
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -117,21 +118,34 @@ def main(argv: list[str] | None = None) -> None:
     server, thread = start_server(settings)
     base_url = bound_url(server)
     message = upload_sample(base_url, settings)
+    # A SIGTERM (``kill``, a container stopping) stops the demo as Ctrl-C does, receiver
+    # included, rather than killing it and leaving the receiver running on.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     receiver = start_receiver(base_url, settings, args.motion)
-    print(f"eventocc server on {base_url}  (API docs: {base_url}/docs)")
-    print(f"transmitter: {base_url}/transmitter?id={message['id']}")
-    print(f"dashboard:   {base_url}/dashboard  (a receiver watches on the virtual camera)")
-    print("Ctrl-C to stop.")
     try:
+        print(f"eventocc server on {base_url}  (API docs: {base_url}/docs)")
+        print(f"transmitter: {base_url}/transmitter?id={message['id']}")
+        print(f"dashboard:   {base_url}/dashboard  (a receiver watches on the virtual camera)")
+        print("Ctrl-C to stop.", flush=True)
         while thread.is_alive():
             thread.join(0.5)
     except KeyboardInterrupt:
         print("\nstopping")
     finally:
-        receiver.terminate()
-        receiver.wait(30)
+        stop_receiver(receiver)
         server.should_exit = True
         thread.join()
+
+
+def stop_receiver(receiver: subprocess.Popen, grace_s: float = 10.0) -> None:
+    """SIGTERM, then SIGKILL if it has not finished within ``grace_s`` (it may be waiting for
+    its simulator's first packet, which compiles the kernels)."""
+    receiver.terminate()
+    try:
+        receiver.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        receiver.kill()
+        receiver.wait()
 
 
 if __name__ == "__main__":

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
+import subprocess
 import sys
 import types
 import urllib.request
@@ -167,3 +170,26 @@ def test_demo_serves_the_sample_and_reuses_it(tmp_path: Path) -> None:
         server.should_exit = True
         thread.join(10)
     assert not thread.is_alive()
+
+
+def test_demo_stopped_by_sigterm_stops_its_receiver_too(tmp_path: Path) -> None:
+    root = Path(__file__).resolve().parent.parent
+    demo_process = subprocess.Popen(
+        [sys.executable, "-m", "server.demo"],
+        cwd=root,
+        env={**os.environ, "EVENTOCC_PORT": "0", "EVENTOCC_DATA_DIR": str(tmp_path)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        for line in demo_process.stdout:
+            if line.startswith("Ctrl-C to stop"):
+                break
+        children = Path(f"/proc/{demo_process.pid}/task/{demo_process.pid}/children")
+        (receiver_pid,) = map(int, children.read_text().split())
+        demo_process.send_signal(signal.SIGTERM)
+        assert demo_process.wait(60) == 0
+    finally:
+        demo_process.kill()
+    assert not Path(f"/proc/{receiver_pid}").exists(), "the receiver outlived the demo"
