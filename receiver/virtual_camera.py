@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import multiprocessing
 import queue
 import signal
@@ -156,7 +157,7 @@ class SimulatorProcess:
                 raise SourceError(f"the simulator sent nothing for {SIMULATOR_TIMEOUT_S:.0f} s")
         try:
             return self._chunks.recv()
-        except EOFError:
+        except (EOFError, OSError):  # OSError: it died in the middle of sending a packet
             self._process.join(5)
         code = self._process.exitcode
         if code is not None and code < 0:  # e.g. SIGTERM to the daemon's process group
@@ -225,6 +226,9 @@ class VirtualCamera:
         """Times the camera skipped ahead because the simulation fell behind the screen."""
         self._waiting_for: str | None = None
         self._watching: Showing | None = None
+        self._timeline: tuple[int, int, float] | None = None
+        """(event time, frame, period in us) of the stream watched: frame k is on screen from
+        ``time + (k - frame) * period``."""
         self._encoder: tuple[Showing, StreamEncoder] | None = None
         self._last_t = -1
         self._behind_note = _BehindNote()
@@ -288,6 +292,7 @@ class VirtualCamera:
                 yield empty_events()
                 time.sleep(WAIT_S)
                 continue
+            showing, t_offset = self._resume(showing)
             try:
                 scene = self.scene(self.encoder(showing), showing)
             except (OSError, LookupError) as error:
@@ -305,14 +310,26 @@ class VirtualCamera:
                     showing.frame_now,
                 )
             self._watching, self.link = showing, showing.link
-            yield from self._watch(scene, showing)
+            yield from self._watch(scene, showing, t_offset)
 
-    def _watch(self, scene, showing: Showing) -> Iterator[np.ndarray]:
-        """The scene's events from now on, until the stream changes or the camera falls
-        ``MAX_LAG_S`` behind the screen."""
-        # One clock across restarts, tied to the wall clock at the first chunk: that one pays
-        # for compiling the simulator and is not late.
-        t_offset = max(self.clock.now_us(), self._last_t + 1) if self.clock.started else 0
+    def _resume(self, showing: Showing) -> tuple[Showing, int]:
+        """Where to start simulating ``showing``: the frame on screen and the event time of its
+        start. One clock across restarts, tied to the wall clock at the first chunk (that one
+        pays for compiling the simulator and is not late). After a skip ahead within the same
+        stream the screen's own timeline goes on, as it does for a real camera that dropped
+        events: frame k keeps its time, so the receiver's frame clock stays right."""
+        now = max(self.clock.now_us(), self._last_t + 1) if self.clock.started else 0
+        same = self._watching is not None and showing.same_stream(self._watching)
+        if self._timeline is None or not same:
+            self._timeline = (now, showing.frame_now, 1e6 / showing.refresh_hz)
+            return showing, now
+        t0, first, period = self._timeline
+        k = math.ceil((now - t0) / period)
+        return replace(showing, frame_now=first + k), round(t0 + k * period)
+
+    def _watch(self, scene, showing: Showing, t_offset: int) -> Iterator[np.ndarray]:
+        """The scene's events from ``t_offset`` on, until the stream changes or the camera
+        falls ``MAX_LAG_S`` behind the screen."""
         window_us, late_before = 0, 0.0  # simulated time and lateness at the window's start
         for events in self.simulator.watch(scene):
             events["t"] += t_offset

@@ -100,6 +100,27 @@ def test_event_time_jumps_to_the_wall_clock_at_a_skip(camera, monkeypatch):
     assert all(gap > 0 for gap in gaps[1:]), "time never runs backwards"
 
 
+def test_a_skip_keeps_the_screens_timeline(camera, monkeypatch):
+    # As for a real camera that dropped events: refresh k is still on screen from the same
+    # time, so the receiver's frame clock holds across the gap.
+    camera, wall, _ = camera
+    monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=0.4))
+    starts: list[int] = []
+    monkeypatch.setattr(camera, "scene", lambda encoder, showing: starts.append(showing.frame_now))
+    first_events: list[int] = []
+    scenes_seen = 0
+    for events in itertools.islice(camera.chunks(), 2000):
+        if len(starts) > scenes_seen:
+            scenes_seen = len(starts)
+            first_events.append(int(events["t"][0]))
+        if camera.skips == 3:
+            break
+    period_us = 1e6 / 60.0
+    assert len(starts) == 4 and starts[0] == 0 and starts[-1] > 100
+    for frame, t in zip(starts[1:], first_events[1:], strict=True):
+        assert t - first_events[0] == pytest.approx(frame * period_us, abs=1.0)
+
+
 def test_a_simulation_faster_than_real_time_is_paced_and_never_skips(camera, monkeypatch):
     camera, wall, _ = camera
     monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=3.0))

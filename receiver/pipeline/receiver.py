@@ -20,7 +20,7 @@ from __future__ import annotations
 import bisect
 import logging
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -108,6 +108,9 @@ class Receiver:
         self._reader: CellReader | None = None
         self._next_frame = 0
         self._missed = 0
+        self._gaps: deque[tuple[int, int]] = deque(maxlen=8)
+        """Recent stretches longer than a data frame without a single event: the source dropped
+        them (a camera's lost packets, the virtual camera skipping ahead)."""
         self._pose_t: list[int] = []
         self._pose_T: list[np.ndarray] = []
         self._last_pose_out = -(1 << 62)
@@ -117,7 +120,10 @@ class Receiver:
         if not len(chunk):
             return []
         st = self.stats
-        st.first_event_us = int(chunk["t"][0]) if st.first_event_us is None else st.first_event_us
+        t_first = int(chunk["t"][0])
+        if st.last_event_us is not None and t_first - st.last_event_us > self.config.frame_us:
+            self._gaps.append((st.last_event_us, t_first))
+        st.first_event_us = t_first if st.first_event_us is None else st.first_event_us
         st.last_event_us = int(chunk["t"][-1])
         st.events += len(chunk)
         with self._cpu("filter"):
@@ -323,6 +329,8 @@ class Receiver:
                 read = reader.read(m, bursts, self.pose_at)
             self.stats.frames_read += 1
             seen = read.locator_score >= q.min_locator_score
+            if not seen and any(a < t1 and t0 < b for a, b in self._gaps):
+                continue  # the source delivered nothing then: no evidence either way
             out.append(FrameOutput(read, seen))
             if not seen:
                 self._missed += 1
