@@ -61,6 +61,9 @@ class FrameStats(_Model):
     ber: Unit | None = None
     """Bit error rate before FEC, when the truth is known (simulator)."""
     events_per_s: Annotated[float, Field(ge=0.0)]
+    payload_bits: Count = 0
+    """Payload bits the frame delivered verified (its CRC passed); 0 for ``paper`` frames,
+    which carry no check."""
 
 
 class MessageReport(_Model):

@@ -225,6 +225,10 @@ class StreamDecoder:
                 raise ValueError(f"message_size must be >= 0, got {message_size}")
             self._paper = PaperDecoder(message_size, cells, self.profile.erasure_below)
         self.frames_pushed = 0
+        self.verified_bits = 0
+        """Payload bits of the frames whose inner code and CRC passed (framed profiles; the
+        ``paper`` frames carry no check): the link's verified throughput, whether or not
+        their message was still wanted."""
 
     def _check(self, array: np.ndarray, what: str) -> np.ndarray:
         array = np.asarray(array)
@@ -263,6 +267,7 @@ class StreamDecoder:
         if frame is None:
             return []
         header, symbol = frame
+        self.verified_bits += 8 * len(symbol)
         if header.stream_id in self._delivered:
             return []
         stream = self._streams.get(header.stream_id)

@@ -310,6 +310,7 @@ class Daemon:
             bits_read=int(read.bits.size) if out.accepted else 0,
             confidence_mean=float(np.clip(np.mean(read.confidence), 0.0, 1.0)),
             events_per_s=self._rate.events_per_s,
+            payload_bits=out.payload_bits,
         )
 
     def publish_news(self, chunk: np.ndarray | None) -> None:

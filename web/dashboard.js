@@ -5,7 +5,8 @@ const MARKER_SIDE_M = 0.272; // the receiver's default marker size, for scale in
 const TRAIL = 600; // poses kept for the trajectory (6 s at the 100 Hz the daemon publishes)
 const SERIES = 120; // one sample per second in each sparkline
 const RECONNECT_S = [0.5, 8];
-const GOODPUT_WINDOW_MS = 60_000; // as the server's /metrics gauge
+const GOODPUT_WINDOW_MS = 60_000; // messages completed: as the server's /metrics gauge
+const VERIFIED_WINDOW_MS = 10_000; // verified frame payload: the link's live rate
 const KEEPING_UP = 0.95; // source speed (x real time) below which the source is behind
 
 const $ = (id) => document.getElementById(id);
@@ -16,6 +17,7 @@ const state = {
   progress: new Map(), // stream_id -> {report, firstSeen: [ms, held]}
   receptions: new Map(), // id -> reception
   recentBits: [], // [ms, bits] of receptions this page saw arrive, for goodput
+  verifiedBits: [], // [ms, bits] of frame payload that passed its CRC, for goodput
   lastFrame: null,
   health: null,
   series: { goodput: [], ber: [], events: [], poses: [] },
@@ -70,6 +72,7 @@ const handlers = {
   },
   frame(u) {
     state.lastFrame = u;
+    if (u.payload_bits) state.verifiedBits.push([performance.now(), u.payload_bits]);
     state.dirty.add("state");
   },
   health(u) {
@@ -248,9 +251,15 @@ function sample() {
     s.push(value);
     if (s.length > SERIES) s.shift();
   };
-  const since = performance.now() - GOODPUT_WINDOW_MS;
-  state.recentBits = state.recentBits.filter(([t]) => t >= since);
-  push("goodput", state.recentBits.reduce((sum, [, bits]) => sum + bits, 0) / (GOODPUT_WINDOW_MS / 1000));
+  const rate = (name, windowMs) => {
+    const since = performance.now() - windowMs;
+    state[name] = state[name].filter(([t]) => t >= since);
+    return state[name].reduce((sum, [, bits]) => sum + bits, 0) / (windowMs / 1000);
+  };
+  // The verified payload of the frames, while it still flows after the message completed;
+  // the paper profile's frames carry no check, so its completed messages count instead.
+  const framed = rate("verifiedBits", VERIFIED_WINDOW_MS);
+  push("goodput", state.verifiedBits.length ? framed : rate("recentBits", GOODPUT_WINDOW_MS));
   push("ber", f ? (f.ber ?? 1 - f.confidence_mean) : null);
   push("events", state.health?.events_per_s ?? f?.events_per_s ?? null);
   push("poses", state.posesThisSecond);

@@ -55,6 +55,8 @@ class FrameOutput:
     read: FrameRead
     accepted: bool
     """The inner locator was seen, so the bits went to the stream decoder."""
+    payload_bits: int = 0
+    """Payload bits the stream decoder verified in this frame (``StreamDecoder.verified_bits``)."""
 
 
 @dataclass(frozen=True)
@@ -331,16 +333,18 @@ class Receiver:
             seen = read.locator_score >= q.min_locator_score
             if not seen and any(a < t1 and t0 < b for a, b in self._gaps):
                 continue  # the source delivered nothing then: no evidence either way
-            out.append(FrameOutput(read, seen))
             if not seen:
+                out.append(FrameOutput(read, False))
                 self._missed += 1
                 if self._missed >= q.lost_after_frames:
                     out += self._lose(now, "inner locator not seen in the last frames")
                 continue
             self._missed = 0
             self.stats.frames_seen += 1
+            verified = self.stream.verified_bits
             with self._cpu("stream"):
                 messages = self.stream.push(read.bits, read.confidence)
+            out.append(FrameOutput(read, True, self.stream.verified_bits - verified))
             out += [MessageOutput(read.t_us, msg) for msg in messages]
         return out
 
