@@ -81,6 +81,8 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
         expect(row).to_contain_text("matches upload")
         expect(page.locator("#pose-readout")).to_contain_text("distance", timeout=30_000)
         expect(page.locator("#tracking-state")).to_have_text("tracking", timeout=30_000)
+        # Verified frames keep flowing after the message completed: goodput is not zero.
+        expect(page.locator("#goodput-value")).to_contain_text("kbit/s", timeout=30_000)
         page.wait_for_timeout(1500)  # let the sparklines take a few samples
         page.screenshot(path=str(artifacts / "dashboard.png"), full_page=True)
         readout = page.locator("#pose-readout").text_content()
