@@ -601,8 +601,9 @@ class MovingRenderer:
     def window(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signal events in [t0, t1]: times (us, float), sensor pixel indices, polarities."""
         tl, d = self.timeline, self.timeline.display
-        path = self._path(self.substeps(t0, t1))
-        T = self.trajectory.pose_at(path[:, _T])
+        t_steps = self.substeps(t0, t1)
+        T = self.trajectory.pose_at(t_steps)
+        path = self._path(t_steps, T)
         box = image_box(self.camera, T, self.outline, _BOX_MARGIN_PX + 0.02 * self.camera.width)
         bounds = self._plane_bounds(T)
         settle_us = _SETTLED_TAU * max(d.rise_ms, d.fall_ms) * 1e3
@@ -634,8 +635,10 @@ class MovingRenderer:
         events = np.concatenate(parts)
         return events["t"], events["i"], events["p"]
 
-    def _path(self, t_steps: np.ndarray) -> np.ndarray:
-        return np.column_stack([flat_poses(self.trajectory.pose_at(t_steps)), t_steps])
+    def _path(self, t_steps: np.ndarray, T: np.ndarray | None = None) -> np.ndarray:
+        """The kernels' camera path at ``t_steps`` (poses ``T`` there, if known already)."""
+        T = self.trajectory.pose_at(t_steps) if T is None else T
+        return np.column_stack([flat_poses(T), t_steps])
 
     def _screen(self, win) -> tuple[tuple, np.ndarray]:
         """``screen`` and ``lum`` (see the kernels' conventions) of a timeline window."""
