@@ -99,7 +99,8 @@ class PaperDecoder:
         self.layout = lay = PaperLayout(size, cells)
         self.erasure_below = erasure_below
         self.coded = np.zeros(lay.frames * lay.frame_bytes, dtype=np.uint8)
-        self.erased = np.ones_like(self.coded, dtype=bool)  # bytes not received yet
+        self.missing = np.ones_like(self.coded, dtype=bool)  # bytes not received yet
+        self.unsure = np.zeros_like(self.missing)  # bytes read with low confidence
         self.data = bytearray(size)
         self.done = np.zeros(lay.codewords, dtype=bool)
         self.ends = np.minimum(np.arange(1, lay.codewords + 1) * lay.rs.n, lay.coded_size)
@@ -118,16 +119,16 @@ class PaperDecoder:
         lay = self.layout
         self.pushed += 1
         frame = cells_to_bytes(bits, lay.frame_bytes)
-        erased = np.zeros(lay.frame_bytes, dtype=bool)
+        unsure = np.zeros(lay.frame_bytes, dtype=bool)
         if confidence is not None:
-            erased = byte_min(confidence, lay.frame_bytes) < self.erasure_below
+            unsure = byte_min(confidence, lay.frame_bytes) < self.erasure_below
         if self.next_index is None:
-            self._find_phase(frame, erased)
+            self._find_phase(frame, unsure)
             return
-        self._store(self.next_index, frame, erased)
+        self._store(self.next_index, frame, unsure)
         self.next_index = (self.next_index + 1) % lay.frames
 
-    def _find_phase(self, frame: np.ndarray, erased: np.ndarray) -> None:
+    def _find_phase(self, frame: np.ndarray, unsure: np.ndarray) -> None:
         lay = self.layout
         if lay.size and np.all(frame == 0xFF):
             self.in_preamble = True  # the blink preamble: data starts with the next other frame
@@ -135,15 +136,15 @@ class PaperDecoder:
             return
         if self.in_preamble:
             self.next_index = 1 % lay.frames
-            self._store(0, frame, erased)
+            self._store(0, frame, unsure)
             return
-        self.recent.append((frame, erased))
+        self.recent.append((frame, unsure))
         if len(self.recent) < lay.frames or self.pushed % lay.frames:
             return  # search once per cycle of frames
         rotation = self._unique_rotation()
         if rotation is not None:
-            for i, (held, held_erased) in enumerate(self.recent):
-                self._place((rotation + i) % lay.frames, held, held_erased)
+            for i, (held, held_unsure) in enumerate(self.recent):
+                self._place((rotation + i) % lay.frames, held, held_unsure)
             self._decode_codewords(0, lay.codewords)
             self.next_index = rotation
 
@@ -157,10 +158,11 @@ class PaperDecoder:
             padding = np.unpackbits(coded[lay.coded_size :])
             if padding.size and padding.mean() > PADDING_ONES_MAX:
                 continue  # real padding is zeros (bar bit errors); another rotation's is data
-            erased = np.concatenate([e for _, e in order])
+            unsure = np.concatenate([e for _, e in order])
+            missing = np.zeros_like(unsure)
             starts = np.arange(lay.codewords) * rs.n
             if all(
-                self._correct(coded, erased, a, b) is not None
+                self._correct(coded, missing, unsure, a, b) is not None
                 for a, b in zip(starts, self.ends, strict=True)
             ):
                 found.append(r)
@@ -168,15 +170,16 @@ class PaperDecoder:
                     return None
         return found[0] if found else None
 
-    def _place(self, index: int, frame: np.ndarray, erased: np.ndarray) -> tuple[int, int]:
+    def _place(self, index: int, frame: np.ndarray, unsure: np.ndarray) -> tuple[int, int]:
         """Put frame ``index`` of the cycle in place; returns its byte range."""
         lo, hi = index * self.layout.frame_bytes, (index + 1) * self.layout.frame_bytes
-        self.coded[lo:hi], self.erased[lo:hi] = frame, erased
+        self.coded[lo:hi], self.unsure[lo:hi] = frame, unsure
+        self.missing[lo:hi] = False
         return lo, hi
 
-    def _store(self, index: int, frame: np.ndarray, erased: np.ndarray) -> None:
+    def _store(self, index: int, frame: np.ndarray, unsure: np.ndarray) -> None:
         """Place frame ``index`` and decode the codewords that end in it."""
-        lo, hi = self._place(index, frame, erased)
+        lo, hi = self._place(index, frame, unsure)
         self._decode_codewords(*np.searchsorted(self.ends, [lo + 1, hi + 1]))
 
     def _decode_codewords(self, first: int, stop: int) -> None:
@@ -184,17 +187,29 @@ class PaperDecoder:
         for i in range(first, stop):
             if self.done[i]:
                 continue
-            data = self._correct(self.coded, self.erased, i * lay.rs.n, self.ends[i])
+            data = self._correct(self.coded, self.missing, self.unsure, i * lay.rs.n, self.ends[i])
             if data is not None:
                 a, b = lay.data_span(i)
                 self.data[a:b] = data
                 self.done[i] = True
 
-    def _correct(self, coded: np.ndarray, erased: np.ndarray, start: int, end: int) -> bytes | None:
-        """The data of the (possibly shortened) codeword at bytes [start, end), or None."""
+    def _correct(
+        self, coded: np.ndarray, missing: np.ndarray, unsure: np.ndarray, start: int, end: int
+    ) -> bytes | None:
+        """The data of the (possibly shortened) codeword at bytes [start, end), or None.
+
+        Bytes not received are always erasures. Low-confidence bytes are erasures only while the
+        parity can fill them: a codeword spans several frames, whose flags together often
+        outnumber the paper's few parity bytes even when every bit is right, so then the bits
+        alone decide (the authors' receiver has no confidences at all)."""
         rs = self.layout.rs
         pad = rs.n - (end - start)  # a shortened codeword is a full one with leading zeros
         word = np.concatenate([np.zeros(pad, np.uint8), coded[start:end]])
-        mask = np.concatenate([np.zeros(pad, bool), erased[start:end]])
-        data, ok = rs.decode(word, mask, margin=DETECTION_MARGIN)
-        return data[0, pad:].tobytes() if ok[0] else None
+        attempts = [missing[start:end] | unsure[start:end]]
+        if unsure[start:end].any():
+            attempts.append(missing[start:end])
+        for erased in attempts:
+            data, ok = rs.decode(word, np.pad(erased, (pad, 0)), margin=DETECTION_MARGIN)
+            if ok[0]:
+                return data[0, pad:].tobytes()
+        return None

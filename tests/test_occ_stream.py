@@ -228,6 +228,21 @@ def test_paper_late_join_decodes_only_whole_codewords() -> None:
     assert [m.data for m in receive(dec, frames, limit=enc.symbols)] == [message]
 
 
+def test_paper_decodes_right_bits_under_more_low_confidence_bytes_than_parity() -> None:
+    """A paper codeword spans ~8 frames at N = 16; two low-confidence bytes per frame outnumber
+    its 4 parity bytes, yet the bits themselves are right and must decode."""
+    message = bytes(np.random.default_rng(3).integers(0, 256, 576, dtype=np.uint8))
+    enc = StreamEncoder(message, profile="paper", cells=16)
+    dec = StreamDecoder(profile="paper", cells=16, message_size=len(message))
+    confidence = np.ones((16, 16))
+    confidence[::8, 0] = 0.2  # one cell in each of two bytes per frame
+    got = []
+    for k in range(6, 6 + 4 * enc.cycle, 2):  # joins mid-cycle: the rotation search decodes
+        if got := dec.push(enc.payload_bits(k), confidence):
+            break
+    assert [m.data for m in got] == [message]
+
+
 def test_paper_decoder_without_size_never_claims_a_message() -> None:
     enc = StreamEncoder(b"abc", profile="paper")
     dec = StreamDecoder(profile="paper")
