@@ -127,7 +127,7 @@ def comparison(outcomes: list[Outcome], path: Path) -> None:
             lw=2.5 if name.startswith("ours") else 1.2,
         )
         rates.append(np.mean([o.throughput_bps for o in by_system[name]]))
-    ax_ok.set_xlabel("marker optical flow [px/ms], bin centres")
+    ax_ok.set_xlabel("marker optical flow [paper px/ms], bin centres")
     ax_ok.set_ylabel("codes / data frames received [%]")
     ax_ok.set_ylim(-5, 105)
     ax_ok.grid(alpha=0.3)

@@ -10,7 +10,10 @@ import pytest
 
 from bench.__main__ import main
 from bench.experiments.baselines import code_families, run_frame_baseline
+from bench.experiments.eventcam import EventRun, binned_camera, camera
+from bench.experiments.streaming import FIT_SHARE, PAPER_CELL_PX, cell_px, paper_cell_px
 from bench.framecam import FrameCamera, Slideshow
+from occ.marker import MarkerGeometry
 from receiver.camera import CameraModel
 from receiver.sim.motion import Rig, StaticMotion
 
@@ -39,7 +42,7 @@ def test_tiny_run_writes_reports_and_plots(tmp_path):
     systems = {
         r["system"] for r in json.loads((tmp_path / "results" / "comparison.json").read_text())
     }
-    assert {"QR v1-L", "QR v1-L + blank", "ours (events, N=16)"} <= systems
+    assert {"QR v1-L", "QR v1-L + blank", "ours (events, N=16, paper)"} <= systems
     # Rerunning one experiment keeps the others' sections.
     main(["--scale", "tiny", "--out", str(tmp_path), "--only", "streaming"])
     assert "<!-- bench:paper_comparison -->" in results.read_text()
@@ -94,3 +97,84 @@ def test_clip_longer_than_the_code_space_is_rejected():
     apriltag = code_families()[1]
     with pytest.raises(ValueError, match="shorten the clip"):
         run_frame_baseline(apriltag, False, 1.0, 0, 60.0, (320, 180))
+
+
+@pytest.mark.parametrize("sensor", [None, (480, 270)])
+def test_streaming_marker_fits_the_view_at_the_papers_cell_size_or_less(sensor):
+    cam = camera(sensor)
+    for cells in PAPER_CELL_PX:
+        px = cell_px(cells, cam)
+        assert px <= paper_cell_px(cells, cam)
+        assert px * MarkerGeometry(cells).tracked_side <= FIT_SHARE * cam.height + 1e-9
+    # N = 16's white ring fits at (almost) the paper's size; N = 96's needs smaller cells.
+    assert cell_px(16, cam) > 0.95 * paper_cell_px(16, cam)
+    assert cell_px(96, cam) < 0.8 * paper_cell_px(96, cam)
+
+
+def test_binned_camera_sees_the_papers_view_with_fewer_pixels():
+    full, binned = CameraModel.paper(), binned_camera((320, 180))
+    point = np.array([[0.1, -0.05, 0.6]])  # camera frame, metres
+    # Pixel centres map as (u + 0.5) * scale - 0.5: the same ray lands on the same spot.
+    assert np.allclose((full.project(point) + 0.5) / 4 - 0.5, binned.project(point))
+    assert np.array_equal(binned_camera(None).K, full.K)
+
+
+def test_binned_camera_rejects_another_aspect_ratio():
+    with pytest.raises(ValueError, match="aspect ratio"):
+        binned_camera((320, 240))
+
+
+def _run(messages: list[dict], first_read_s: float | None) -> EventRun:
+    none = np.empty((0, 4, 4))
+    return EventRun(
+        {"messages": messages}, np.empty(0), none, none, np.empty((0, 2)), first_read_s, 0
+    )
+
+
+def test_goodput_counts_the_frames_that_carried_the_message():
+    done = {"verified": True, "t_s": 1.0}
+    # 8000 bits over the frames from 0.2 s to 1.0 s plus the last frame's own 0.2 s.
+    assert _run([done], 0.2).goodput_bps(8000, 0.2) == pytest.approx(8000)
+    assert _run([{**done, "verified": False}], 0.2).goodput_bps(8000, 0.2) == 0.0
+    assert _run([], None).goodput_bps(8000, 0.2) == 0.0
+
+
+def test_pose_errors_match_evo():
+    """ATE and RPE as the paper computes them with evo (optional: skipped where it is missing)."""
+    pytest.importorskip("evo")
+    from evo.core import metrics as evo_metrics
+    from evo.core.trajectory import PoseTrajectory3D
+    from scipy.spatial.transform import Rotation
+
+    from bench.experiments.localization import RPE_DELTA_US
+    from receiver.pipeline.metrics import pose_errors
+
+    rng = np.random.default_rng(0)
+    n = 360
+    t_us = np.arange(n) * RPE_DELTA_US
+    truth = np.tile(np.eye(4), (n, 1, 1))
+    truth[:, :3, :3] = Rotation.from_rotvec(np.cumsum(rng.normal(0, 3e-3, (n, 3)), 0)).as_matrix()
+    truth[:, :3, 3] = np.cumsum(rng.normal(0, 1e-3, (n, 3)), 0) + np.array([0.1, 0.1, -0.6])
+    estimate = truth.copy()
+    estimate[:, :3, :3] = (
+        truth[:, :3, :3] @ Rotation.from_rotvec(rng.normal(0, 4e-3, (n, 3))).as_matrix()
+    )
+    estimate[:, :3, 3] += rng.normal(0, 5e-3, (n, 3))
+    offset = np.eye(4)  # a rigid offset that the alignment must remove
+    offset[:3, :3] = Rotation.from_rotvec([0.1, -0.2, 0.05]).as_matrix()
+    offset[:3, 3] = [0.3, -0.1, 0.2]
+    estimate = offset @ estimate
+    ours = pose_errors(t_us, estimate, truth, delta_us=RPE_DELTA_US)
+
+    ref = PoseTrajectory3D(poses_se3=list(truth), timestamps=t_us / 1e6)
+    est = PoseTrajectory3D(poses_se3=list(estimate), timestamps=t_us / 1e6)
+    est.align(ref, correct_scale=False)
+    relation, rmse = evo_metrics.PoseRelation, evo_metrics.StatisticsType.rmse
+    ape = evo_metrics.APE(relation.translation_part)
+    rpe_t = evo_metrics.RPE(relation.translation_part, 1, evo_metrics.Unit.frames)
+    rpe_r = evo_metrics.RPE(relation.rotation_angle_deg, 1, evo_metrics.Unit.frames)
+    for metric in (ape, rpe_t, rpe_r):
+        metric.process_data((ref, est))
+    assert ours.ate_rmse_m == pytest.approx(ape.get_statistic(rmse), rel=1e-6)
+    assert ours.rpe_trans_rmse_m == pytest.approx(rpe_t.get_statistic(rmse), rel=1e-6)
+    assert ours.rpe_rot_rmse_deg == pytest.approx(rpe_r.get_statistic(rmse), rel=1e-6)

@@ -3,7 +3,9 @@
 Frame-camera baselines: a 120 Hz global-shutter camera (``bench.framecam``) films a 60 Hz screen
 that shows a new code on every refresh, or on every other refresh with a black refresh between
 (the paper's two streams). A code counts as received when any frame decodes its exact payload.
-Our event receiver watches the same hand-held motions (same seeds, same camera and display).
+Our event receiver watches the same hand-held motions (same seeds, same camera and display),
+with the paper's link profile (the paper's set-up) and with ``robust``. Flows are in the paper's
+pixels (``eventcam.hand_held_scene``).
 """
 
 from __future__ import annotations
@@ -17,17 +19,22 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from bench.experiments.eventcam import Sensor, camera, fitting_distance, run_event_receiver
+from bench.experiments.eventcam import (
+    HAND_HELD_TRACKER,
+    Sensor,
+    binning,
+    clip_message,
+    hand_held_scene,
+    run_event_receiver,
+)
 from bench.framecam import FrameCamera, Slideshow
 from occ.stream import StreamEncoder
-from receiver.sim import HandHeldMotion, Scene, SensorModel
+from receiver.sim import Scene
 from receiver.sim.motion import project_points
 
-DISTANCE_M = 0.6
-"""Hand-held distance on the full sensor (scaled up for crops so the marker fits)."""
-MARKER_M = 0.272
 FLOW_EDGES = (0.0, 1.0, 2.0, 3.0, 5.0, 8.0)
-"""Bins of the marker's mean optical flow (px/ms) for the success-rate plot."""
+"""Bins of the marker's mean optical flow (paper px/ms) for the success-rate plot."""
+EVENT_PROFILES = ("paper", "robust")
 
 
 @dataclass(frozen=True)
@@ -92,18 +99,16 @@ def code_families() -> list[CodeFamily]:
     ]
 
 
-def marker_flow(trajectory, cam, points: np.ndarray, t_us: np.ndarray) -> np.ndarray:
-    """Mean image speed (px/ms) of ``points`` at each time, by a 1 ms central difference."""
+def marker_flow(scene: Scene, sensor: Sensor, points: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+    """Mean image speed (paper px/ms) of ``points`` at each time, by a 1 ms central difference."""
+    trajectory, cam = _trajectory(scene), scene.camera
     before = trajectory.pose_at(np.asarray(t_us) - 500.0)
     after = trajectory.pose_at(np.asarray(t_us) + 500.0)
-    return np.array(
-        [
-            np.linalg.norm(
-                project_points(cam, a, points) - project_points(cam, b, points), axis=1
-            ).mean()
-            for a, b in zip(before, after, strict=True)
-        ]
-    )
+    flow = [
+        np.linalg.norm(project_points(cam, a, points) - project_points(cam, b, points), axis=1)
+        for a, b in zip(before, after, strict=True)
+    ]
+    return np.array([f.mean() for f in flow]) / binning(sensor)
 
 
 @dataclass(frozen=True)
@@ -120,16 +125,10 @@ class Outcome:
 
 
 @lru_cache(maxsize=8)
-def _scene(flow: float, seed: int, sensor: Sensor) -> Scene:
-    message = np.random.default_rng(seed).integers(0, 256, 1024, dtype=np.uint8).tobytes()
-    return Scene(
-        encoder=StreamEncoder(message, profile="robust", cells=16),
-        marker_size_m=MARKER_M,
-        camera=camera(sensor),
-        motion=HandHeldMotion(fitting_distance(sensor, DISTANCE_M), flow, seed=seed),
-        sensor=SensorModel.preset("gen4-indoor", lux=250.0),
-        seed=seed,
-    )
+def _motion(flow: float, seed: int, sensor: Sensor) -> Scene:
+    """The hand-held scene whose motion, camera and display every system of one (flow, seed)
+    shares; the frame baselines replace its screen, our receiver its message."""
+    return hand_held_scene(StreamEncoder(b"", cells=16), flow, seed, sensor)
 
 
 @lru_cache(maxsize=8)
@@ -146,7 +145,7 @@ def run_frame_baseline(
     sensor: Sensor,
 ) -> Outcome:
     t0 = time.perf_counter()
-    scene = _scene(flow, seed, sensor)
+    scene = _motion(flow, seed, sensor)
     refreshes = int(duration_s * scene.display.refresh_hz)
     if refreshes > family.capacity:
         raise ValueError(
@@ -156,7 +155,7 @@ def run_frame_baseline(
     trajectory = _trajectory(scene)  # the event camera's motion, exactly
     screen = Slideshow(
         [family.draw(i) for i in range(refreshes)],
-        MARKER_M,
+        scene.marker_size_m,
         blank_between,
         scene.display,
         scene.sensor.lux,
@@ -167,7 +166,7 @@ def run_frame_baseline(
         received |= family.read(image)
     shown = [k for k in range(refreshes) if screen.code_index(k) is not None]
     t_mid = (np.array(shown) + 0.5) * scene.display.period_us
-    flow_px = marker_flow(trajectory, scene.camera, screen.corners(), t_mid)
+    flow_px = marker_flow(scene, sensor, screen.corners(), t_mid)
     got = np.array([screen.code_index(k) in received for k in shown])
     name = f"{family.name}" + (" + blank" if blank_between else "")
     return Outcome(
@@ -175,20 +174,22 @@ def run_frame_baseline(
     )
 
 
-def run_event(flow: float, seed: int, duration_s: float, sensor: Sensor) -> Outcome:
-    """Our receiver: a data frame counts as received when it is read bit-exact (before FEC)."""
-    scene = _scene(flow, seed, sensor)
-    run = run_event_receiver(scene, duration_s)
-    enc = scene.encoder
+def run_event(profile: str, flow: float, seed: int, duration_s: float, sensor: Sensor) -> Outcome:
+    """Our receiver: a data frame counts as received when it is read bit-exact (before FEC), from
+    the clip's start like the codes (detection costs the frames before the lock); the throughput
+    is the goodput after FEC of a message sized to the clip (``EventRun.goodput_bps``)."""
+    motion = _motion(flow, seed, sensor)
+    message = clip_message(profile, 16, motion.display.refresh_hz, duration_s, seed)
+    enc = StreamEncoder(message, profile=profile, cells=16)
+    scene = hand_held_scene(enc, flow, seed, sensor)
+    run = run_event_receiver(scene, duration_s, HAND_HELD_TRACKER)
     period = scene.display.period_us
-    lock_s = run.report["time_to_lock_s"]
-    first = int(np.ceil((lock_s or duration_s) * 1e6 / period))
-    shown = [k for k in range(first, int(duration_s * 1e6 / period)) if enc.is_data_frame(k)]
+    shown = [k for k in range(int(duration_s * 1e6 / period)) if enc.is_data_frame(k)]
     exact = {round(t / period - 0.5) for t, e in run.frames if e == 0}
     # A read frame's time falls inside its refresh; allow one refresh of slack either way.
     got = np.array([any(j in exact for j in (k - 1, k, k + 1)) for k in shown], bool)
-    trajectory = _trajectory(scene)
     flow_px = marker_flow(
-        trajectory, scene.camera, scene.rig.corners, (np.array(shown, float) + 0.5) * period
+        motion, sensor, motion.rig.corners, (np.array(shown, float) + 0.5) * period
     )
-    return Outcome("ours (events, N=16)", flow_px, got, run.report["goodput_bps"], run.wall_s)
+    goodput = run.goodput_bps(len(message) * 8, enc.profile.data_every * period / 1e6)
+    return Outcome(f"ours (events, N=16, {profile})", flow_px, got, goodput, run.wall_s)

@@ -2,27 +2,31 @@
 
 The camera stands 1.25 m in front of the screen and the marker fills its view: the marker is
 sized so each cell covers as many pixels as in the paper (30 px at N = 16 down to 7 px at N = 96,
-scaled with the sensor height on a cropped sensor). Each point streams a fresh random message.
+scaled with the sensor height on a cropped sensor) where that fits. The paper's marker has
+one-cell exterior rings, so at those sizes it just fills 720 px; ours widens the rings with N
+(``ceil(N / 16)`` cells), which at the paper's pixels per cell would overflow the view from
+N = 32 on, so there the cells shrink until the white ring fits (``cell_px``). Each point streams
+a fresh random message.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-import numpy as np
-
-from bench.experiments.eventcam import Sensor, camera, run_event_receiver
+from bench.experiments.eventcam import Sensor, camera, clip_message, raw_bps, run_event_receiver
+from occ.marker import MarkerGeometry
 from occ.stream import StreamEncoder
+from receiver.camera import CameraModel
 from receiver.sim import Display, Scene, SensorModel, StaticMotion
 from receiver.sim.scene import marker_size_for_cell_px
 
 DISTANCE_M = 1.25
 PAPER_CELL_PX = {16: 30, 32: 18, 48: 13, 64: 10, 80: 8, 96: 7}
-"""Pixels per cell the paper reports for each N (its Section V-A)."""
+"""Pixels per cell the paper reports for each N (its Section V-A), on its 720 px high sensor."""
+FIT_SHARE = 0.9
+"""The white ring (what detection and tracking need) spans at most this share of the sensor
+height, leaving a margin for the blur and the detector's search."""
 PAPER_PEAK_BPS = 114_000
-MESSAGE_SHARE = 0.2
-"""The message takes this share of the clip's raw capacity, leaving room for detection, FEC
-and a missed first pass; it still spans many frames, so the rate is a rate."""
 
 
 @dataclass(frozen=True)
@@ -34,10 +38,14 @@ class StreamingPoint:
     seed: int
     ber: float | None
     goodput_bps: float
-    """Verified message bits / time from lock to the message's completion (the looping
-    transmitter's net rate after FEC); 0 when it did not complete within the clip."""
+    """Verified message bits per second of the frames that carried them (``EventRun.goodput_bps``:
+    the paper's throughput after FEC); 0 when the message did not complete within the clip."""
     raw_bps: float
     """Physical limit: N^2 bits per data frame at the data frame rate."""
+    cell_px: float
+    """Pixels per cell at the marker centre (``cell_px``)."""
+    paper_cell_px: float
+    """The paper's pixels per cell, scaled to the sensor height."""
     locked: bool
     wall_s: float
 
@@ -45,8 +53,31 @@ class StreamingPoint:
         return asdict(self)
 
 
-def raw_bps(cells: int, refresh_hz: float, data_every: int) -> float:
-    return cells**2 * refresh_hz / data_every
+def paper_cell_px(cells: int, cam: CameraModel) -> float:
+    """The paper's pixels per cell for payload side ``cells``, scaled with the sensor height."""
+    return PAPER_CELL_PX[cells] * cam.height / 720
+
+
+def cell_px(cells: int, cam: CameraModel) -> float:
+    """Pixels per cell to show payload side ``cells`` with: the paper's, capped so our marker's
+    white ring fits within ``FIT_SHARE`` of the view."""
+    fits = FIT_SHARE * cam.height / MarkerGeometry(cells).tracked_side
+    return min(paper_cell_px(cells, cam), fits)
+
+
+def static_scene(encoder: StreamEncoder, cam: CameraModel, **kwargs) -> Scene:
+    """The paper's static set-up for ``encoder``: 1.25 m away, the marker filling the view
+    (``cell_px``); ``kwargs`` go to ``Scene`` (display, sensor, seed)."""
+    size = marker_size_for_cell_px(
+        cell_px(encoder.geometry.cells, cam), encoder.geometry, DISTANCE_M, cam.K[0, 0]
+    )
+    return Scene(
+        encoder=encoder,
+        marker_size_m=size,
+        camera=cam,
+        motion=StaticMotion(DISTANCE_M),
+        **kwargs,
+    )
 
 
 def run_point(
@@ -59,26 +90,29 @@ def run_point(
     sensor: Sensor,
 ) -> StreamingPoint:
     cam = camera(sensor)
-    probe = StreamEncoder(b"\0", profile=profile, cells=cells)
-    limit = raw_bps(cells, refresh_hz, probe.profile.data_every)
-    size = max(16, int(limit * duration_s * MESSAGE_SHARE / 8))
-    message = np.random.default_rng(seed).integers(0, 256, size, dtype=np.uint8).tobytes()
-    encoder = StreamEncoder(message, profile=profile, cells=cells)
-    cell_px = PAPER_CELL_PX[cells] * cam.height / 720
-    scene = Scene(
-        encoder=encoder,
-        marker_size_m=marker_size_for_cell_px(cell_px, encoder.geometry, DISTANCE_M, cam.K[0, 0]),
+    encoder = StreamEncoder(
+        clip_message(profile, cells, refresh_hz, duration_s, seed), profile=profile, cells=cells
+    )
+    data_every = encoder.profile.data_every
+    scene = static_scene(
+        encoder,
+        cam,
         display=Display(refresh_hz=refresh_hz),
-        camera=cam,
-        motion=StaticMotion(DISTANCE_M),
         sensor=SensorModel.preset("gen4-indoor", lux=lux),
         seed=seed,
     )
     run = run_event_receiver(scene, duration_s)
-    rep = run.report
-    done = [m for m in rep["messages"] if m["verified"]]
-    lock_s = rep["time_to_lock_s"]
-    goodput = size * 8 / (done[0]["t_s"] - lock_s) if done and lock_s is not None else 0.0
     return StreamingPoint(
-        profile, refresh_hz, cells, lux, seed, rep["ber"], goodput, limit, rep["locked"], run.wall_s
+        profile,
+        refresh_hz,
+        cells,
+        lux,
+        seed,
+        run.report["ber"],
+        run.goodput_bps(len(encoder.message) * 8, data_every / refresh_hz),
+        raw_bps(cells, refresh_hz, data_every),
+        scene.cell_px(),
+        paper_cell_px(cells, cam),
+        run.report["locked"],
+        run.wall_s,
     )
