@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from occ.frame_codec import FrameCodec
 from occ.stream import StreamDecoder, StreamEncoder
 
 FRAMED = ("robust", "fast")
@@ -84,6 +85,23 @@ def test_framed_round_trip_from_any_start(
     assert got[0].sha256 == hashlib.sha256(message).hexdigest()
     assert got[0].stream_id == enc.stream_id
     assert dec.push(enc.payload_bits(next(k for k in range(9) if enc.is_data_frame(k)))) == []
+
+
+@pytest.mark.parametrize("profile", FRAMED)
+def test_verified_bits_count_every_checked_frame_delivered_or_not(profile: str) -> None:
+    # The link's live throughput: it goes on after the looping message was delivered.
+    enc = StreamEncoder(b"hello" * 40, profile=profile, cells=16)
+    dec = StreamDecoder(profile=profile, cells=16)
+    symbol_bits = 8 * FrameCodec(enc.profile, 16).symbol_size
+    frames = noisy_channel(enc, 0, np.random.default_rng(1))
+    assert receive(dec, frames, 200)
+    after_delivery = dec.verified_bits
+    assert after_delivery == symbol_bits * dec.frames_pushed
+    garbage = np.random.default_rng(2).integers(0, 2, (16, 16), dtype=np.uint8)
+    dec.push(garbage)  # fails its CRC: not counted
+    for _ in range(3):
+        assert dec.push(next(frames)) == []  # the same message: not delivered again
+    assert dec.verified_bits == after_delivery + 3 * symbol_bits
 
 
 @pytest.mark.parametrize("profile", FRAMED)
