@@ -12,6 +12,11 @@ BENCHMARKS_MD = Path(__file__).resolve().parent.parent / "docs" / "BENCHMARKS.md
 HEADER = "# Benchmarks\n\nEvery section is written by the command it names; rerun it to refresh.\n"
 
 
+def _git(*args: str) -> str:
+    done = subprocess.run(["git", *args], capture_output=True, text=True, check=False)
+    return done.stdout.strip()
+
+
 def machine() -> str:
     """One line describing this machine, for every section."""
     cpu = platform.processor() or platform.machine()
@@ -23,9 +28,9 @@ def machine() -> str:
     except OSError:
         pass
     try:
-        rev = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-        ).stdout.strip()
+        rev = _git("rev-parse", "--short", "HEAD")
+        if rev and _git("status", "--porcelain", "--", "*.py"):
+            rev += " with uncommitted code changes"  # the numbers are not that commit's
     except OSError:
         rev = ""
     return (
