@@ -78,10 +78,11 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often
   here than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its
   throughput above ours at N = 16; the paper found the opposite. Under fast motion (4 px/ms)
-  the receiver can lock onto a wrong pose that its checks do not reject (seen: a quarter turn
+  detection can still lock onto a wrong pose that the lock's checks pass (seen: a quarter turn
   off, the ring fitted about a ring width too large; the square ring cannot tell a quarter
-  turn apart, so tracking holds it): the `paper` profile, with no CRC, then reads garbage for
-  the rest of the clip, while `robust` at the same motion locked correctly.
+  turn apart): tracking drops it within three frames, once the inner locator's 'L' reads no
+  better upright than turned, and locks again; the `paper` profile, with no CRC, reads those
+  few frames as garbage.
 - The simulator has no motion-capture noise, calibration error or clock offset, so our ATE is
   below the paper's; it shows the tracker, not what a real set-up would measure.
 """

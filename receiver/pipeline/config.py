@@ -115,6 +115,18 @@ class DecoderParams:
     lost_after_frames: int = 6
     """Consecutive frames without the inner locator before tracking counts as lost."""
     min_locator_score: float = 0.3
+    turn_frames: int = 3
+    """Read frames over which the inner locator's 'L' is judged (``min_turn_lead``)."""
+    min_turn_lead: float = 0.5
+    """Median over the last ``turn_frames`` frames of the canonical turn's locator reading
+    minus the best other turn's (``FrameRead.turns``, ring-mean units), below which tracking
+    counts as lost. A correct pose reads a lead of ~1.5 (hand-held at 0.5 px/ms); a pose a
+    quarter turn off, or one whose ring fit is a ring width too large, reads ~0-0.6 although
+    its ``locator_score`` (medians of the white and black cells) often reads 1 (issue 4)."""
+
+    def __post_init__(self) -> None:
+        if self.turn_frames < 1:
+            raise ValueError(f"decoder turn_frames must be at least 1, got {self.turn_frames}")
 
 
 @dataclass(frozen=True)

@@ -42,14 +42,14 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numba
 import numpy as np
 
 from receiver.pipeline.buffer import EventColumns
 from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.detector import ring_cells
+from receiver.pipeline.detector import ring_cells, turn_readings
 from receiver.pipeline.pose import plane_homography
 
 _HISTORY = 32
@@ -112,6 +112,11 @@ class FrameRead:
     too for a frame read before any burst timed the clock)."""
     pixels: int
     """Pixel bursts inside the frame's gates on the cells."""
+    turns: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    """(4,) the locator ring read with the grid turned by 0..3 quarter turns
+    (``detector.turn_readings``), in units of the ring's mean density (the same in every turn):
+    a pose a quarter turn off can still show a high ``locator_score`` (the medians of the white
+    and black cells), but it reads best at another turn."""
 
 
 class FrameClock:
@@ -521,4 +526,5 @@ class CellReader:
         bits = (payload > threshold).astype(np.uint8)
         confidence = np.clip(np.abs(payload - threshold) / (_SURE * contrast), 0.0, 1.0)
         score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
-        return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels)
+        turns = turn_readings(density, self.config.geometry) / max(float(ring.mean()), 1e-9)
+        return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)

@@ -314,7 +314,9 @@ def locator_cells(corners: np.ndarray, image: np.ndarray, side: int) -> np.ndarr
     by ``corners`` (TL, TR, BR, BL of the locator in ``image``'s pixels). Cell centres alone
     mislead at a few pixels per cell: blur and motion light up the edges of black cells."""
     size = side * _CELL_SAMPLES
-    grid = np.array([[0, 0], [size, 0], [size, size], [0, size]], np.float32)
+    # Sample centres sit symmetrically in the cells, so a grid of the corners rolled by a
+    # quarter turn reads the same samples turned (``turn_readings``).
+    grid = np.array([[0, 0], [size, 0], [size, size], [0, size]], np.float32) - 0.5
     H = cv2.getPerspectiveTransform(grid, corners.astype(np.float32))
     flat = cv2.warpPerspective(
         image.astype(np.float32), H, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
@@ -325,6 +327,16 @@ def locator_cells(corners: np.ndarray, image: np.ndarray, side: int) -> np.ndarr
     )
 
 
+def turn_readings(cells: np.ndarray, geometry: MarkerGeometry) -> np.ndarray:
+    """(4,) readings of the inner locator's ring in a (side, side) grid of per-cell values, with
+    the grid turned by r = 0..3 quarter turns: the mean of the ring's white cells minus that of
+    its black ones. Turn r is what the grid of the corners ``np.roll(quad, -r)`` reads, so a
+    pose or a corner order a quarter turn off reads best at r != 0."""
+    ring, white = ring_cells(geometry)
+    lit = np.stack([np.rot90(cells, r) for r in range(4)])[:, ring[:, 1], ring[:, 0]]
+    return lit[:, white].mean(axis=1) - lit[:, ~white].mean(axis=1)
+
+
 def orient(
     quad: np.ndarray, burst: np.ndarray, geometry: MarkerGeometry
 ) -> tuple[np.ndarray, float]:
@@ -333,12 +345,7 @@ def orient(
     A rotation reads as the mean lit share of the ring's white cells minus that of its black
     ones; the score is the best reading's lead over the runner-up, since under motion or blur
     every rotation can read a little above zero and only a clear lead names the "L"."""
-    cells, white = ring_cells(geometry)
-    readings = []
-    for r in range(4):
-        corners = np.roll(quad, -r, axis=0)
-        lit = locator_cells(corners, burst, geometry.locator_side)[cells[:, 1], cells[:, 0]]
-        readings.append(lit[white].mean() - lit[~white].mean())
+    readings = turn_readings(locator_cells(quad, burst, geometry.locator_side), geometry)
     best, runner_up = np.argsort(readings)[::-1][:2]
     return np.roll(quad, -best, axis=0), float(readings[best] - readings[runner_up])
 

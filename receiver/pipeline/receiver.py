@@ -7,7 +7,10 @@ still count towards the message.
 
 Detection attempts are spaced in event time (``DetectorParams.retry_us``), so a recording decodes
 the same on any machine; only a real-time source also spaces them by their CPU cost. A detection
-becomes a lock only once the frames still buffered verify it (``Receiver._unverified``).
+becomes a lock only once the frames still buffered verify it (``Receiver._unverified``). While
+tracking, a lock is dropped when the tracker leaves the ring's edges, the marker leaves the view,
+the inner locator goes unseen for several frames, or its 'L' reads upright barely better than
+turned (``Receiver._misturned``): a pose a quarter turn off passes every other check.
 
 Only one stage touches every event while the marker is tracked: the compiled triage
 (``triage.EventTriage``), which keeps each pixel's latest burst times for the decoder and hands
@@ -110,6 +113,8 @@ class Receiver:
         self._reader: CellReader | None = None
         self._next_frame = 0
         self._missed = 0
+        self._turn_leads: deque[float] = deque(maxlen=config.decoder.turn_frames)
+        """The latest read frames' leads of the locator's canonical turn (``_misturned``)."""
         self._gaps: deque[tuple[int, int]] = deque(maxlen=8)
         """Recent stretches longer than a data frame without a single event: the source dropped
         them (a camera's lost packets, the virtual camera skipping ahead)."""
@@ -202,6 +207,7 @@ class Receiver:
         window = self.config.detector.window_us
         self._next_frame = 0 if found.moving else -int(window // self.config.frame_us) + 1
         self._missed = 0
+        self._turn_leads.clear()
         self._pose_t, self._pose_T = [t_lock], [T]
         self.state = TRACKING
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
@@ -333,6 +339,10 @@ class Receiver:
             seen = read.locator_score >= q.min_locator_score
             if not seen and any(a < t1 and t0 < b for a, b in self._gaps):
                 continue  # the source delivered nothing then: no evidence either way
+            if self._misturned(read):
+                out.append(FrameOutput(read, False))
+                out += self._lose(now, "the inner locator's 'L' does not read at the tracked pose")
+                continue
             if not seen:
                 out.append(FrameOutput(read, False))
                 self._missed += 1
@@ -347,6 +357,16 @@ class Receiver:
             out.append(FrameOutput(read, True, self.stream.verified_bits - verified))
             out += [MessageOutput(read.t_us, msg) for msg in messages]
         return out
+
+    def _misturned(self, read: FrameRead) -> bool:
+        """Record ``read``; whether the last ``turn_frames`` frames read the locator's 'L'
+        upright barely better (``min_turn_lead``) than turned by a quarter or a half. Such a pose
+        passes the locator score (the medians of the white and black cells) and the fit ratio
+        (the ring is square: a turned pose lies on its edges) but reads garbage; under fast
+        motion detection makes such fits."""
+        self._turn_leads.append(float(read.turns[0] - read.turns[1:].max()))
+        leads = self._turn_leads
+        return len(leads) == leads.maxlen and np.median(leads) < self.config.decoder.min_turn_lead
 
     # --- poses -------------------------------------------------------------------------------
     def pose_at(self, t_us: float) -> np.ndarray:
