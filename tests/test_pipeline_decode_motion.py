@@ -16,6 +16,7 @@ from receiver.pipeline.receiver import MessageOutput, Receiver
 from receiver.pipeline.report import DecodeLog, FrameTruth
 from receiver.poses import invert
 from receiver.sim import simulate
+from tests.cells import locator_block
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
@@ -65,12 +66,6 @@ def _frame(
     )
 
 
-def _cells(reader: CellReader, payload: np.ndarray) -> np.ndarray:
-    cells = reader.config.geometry.inner_locator.copy()
-    cells[1:-1, 1:-1] = payload
-    return cells
-
-
 def _aligned_count(reader: CellReader, t, p, u, v) -> np.ndarray:
     """Cell counts on the shifted grid that ``CellReader.read`` picks for a moving camera."""
     counts = reader._count(t, p, u, v, 0, _ALIGN_SHIFTS)
@@ -88,7 +83,7 @@ def test_read_gate_narrows_to_the_locator_bursts_and_drops_swept_cells():
     rng = np.random.default_rng(0)
     reader = _reader()
     payload = rng.integers(0, 2, (16, 16)).astype(bool)
-    cells = _cells(reader, payload)
+    cells = locator_block(reader.config.geometry, payload)
     late = np.zeros_like(cells)
     late[1:-1, 1:-1] = ~payload & (rng.random((16, 16)) < 0.5)  # half the black cells swept
     wide = reader.gate
@@ -101,7 +96,7 @@ def test_read_gate_narrows_to_the_locator_bursts_and_drops_swept_cells():
 def test_a_grid_that_trails_by_a_third_of_a_cell_is_pulled_back_onto_the_ring():
     rng = np.random.default_rng(1)
     reader = _reader()
-    cells = _cells(reader, rng.integers(0, 2, (16, 16)).astype(bool))
+    cells = locator_block(reader.config.geometry, rng.integers(0, 2, (16, 16)).astype(bool))
     t, p, u, v = _frame(reader, cells, np.random.default_rng(2))
     reader._retime(0, t, p, u, v)
     truth = reader._count(t, p, u, v, 0)[0]

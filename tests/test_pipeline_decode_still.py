@@ -13,6 +13,7 @@ from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.decoder import CellReader
 from receiver.poses import invert
 from receiver.sim.motion import look_at
+from tests.cells import locator_block
 
 CONFIG = ReceiverConfig(CAMERA, cells=16)
 """About 4 px per cell at 0.6 m: a cell's inner part holds 4 to 9 pixel centres."""
@@ -51,12 +52,6 @@ def _white_bursts(
     )
 
 
-def _frame_cells(reader: CellReader, payload: np.ndarray) -> np.ndarray:
-    cells = reader.config.geometry.inner_locator.copy()
-    cells[1:-1, 1:-1] = payload
-    return cells
-
-
 def test_a_still_cell_reads_as_the_share_of_its_own_pixels():
     reader = CellReader(CONFIG, first_burst_us=0.0)
     T = _pose()
@@ -64,7 +59,7 @@ def test_a_still_cell_reads_as_the_share_of_its_own_pixels():
     pixels = reader._inner_pixels(T, to_grid, still=True)
     assert pixels.min() <= 5 and pixels.max() >= 8  # an area would misjudge cells by ~2x
     payload = np.random.default_rng(0).integers(0, 2, (16, 16)).astype(bool)
-    cells = _frame_cells(reader, payload)
+    cells = locator_block(reader.config.geometry, payload)
     ev = _white_bursts(reader, T, cells)
     g = to_grid @ np.stack([ev.xu, ev.yu, np.ones(len(ev))])
     u, v = (g[:2] / g[2]).astype(np.float32)
@@ -76,7 +71,9 @@ def test_a_still_frame_reads_exactly_with_full_confidence():
     reader = CellReader(CONFIG, first_burst_us=0.0)
     T = _pose()
     payload = np.random.default_rng(1).integers(0, 2, (16, 16)).astype(bool)
-    read = reader.read(0, _white_bursts(reader, T, _frame_cells(reader, payload)), lambda _: T)
+    read = reader.read(
+        0, _white_bursts(reader, T, locator_block(reader.config.geometry, payload)), lambda _: T
+    )
     assert np.array_equal(read.bits, payload)
     assert read.confidence.min() == 1.0 and read.locator_score == pytest.approx(1.0)
 
@@ -136,7 +133,7 @@ def test_a_frame_read_before_any_burst_timed_the_clock_is_not_seen():
     reader = CellReader(ReceiverConfig(CAMERA, cells=16, profile="fast"), first_burst_us=0.0)
     T = _pose()
     payload = np.random.default_rng(4).integers(0, 2, (16, 16)).astype(bool)
-    cells = _frame_cells(reader, payload)
+    cells = locator_block(reader.config.geometry, payload)
     untimed = reader.read(-1, _white_bursts(reader, T, cells, m=-1), lambda _: T)
     assert untimed.locator_score == 0.0
     timed = reader.read(0, _white_bursts(reader, T, cells, m=0), lambda _: T)

@@ -1,0 +1,14 @@
+"""Cell matrices the decoder tests draw their synthetic frames from."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from occ.marker import MarkerGeometry
+
+
+def locator_block(geometry: MarkerGeometry, payload: np.ndarray) -> np.ndarray:
+    """The (N+2, N+2) cells the decoder reads: the inner locator around the payload."""
+    cells = geometry.inner_locator.copy()
+    cells[1:-1, 1:-1] = payload
+    return cells
