@@ -74,6 +74,12 @@ def _events(t, x, y, p) -> np.ndarray:
     return ev[np.argsort(ev["t"], kind="stable")]
 
 
+def _noise(rng, n, span_us, p) -> np.ndarray:
+    """``n`` events of polarity ``p`` at random times in [0, ``span_us``) and random pixels."""
+    t = np.sort(rng.integers(0, span_us, n))
+    return make_events(t, rng.integers(0, SHAPE[1], n), rng.integers(0, SHAPE[0], n), p)
+
+
 def _outline(rng, n, t0, t1, corner, side, flow, polarity):
     """``n`` events on a square outline (top-left ``corner`` at t = 0) moving at ``flow``."""
     t = rng.integers(t0, t1, n)
@@ -119,14 +125,7 @@ def test_motion_flow_recovers_the_translation_of_an_outline(flow):
 
 
 def test_motion_flow_of_unstructured_noise_is_zero():
-    rng = np.random.default_rng(2)
-    n = 20_000
-    ev = _events(
-        np.sort(rng.integers(0, 13_000, n)),
-        rng.uniform(0, 239, n),
-        rng.uniform(0, 179, n),
-        -np.ones(n, np.int8),
-    )
+    ev = _noise(np.random.default_rng(2), 20_000, 13_000, -1)
     assert np.array_equal(motion_flow(ev, 13_000, SENSOR), [0.0, 0.0])
 
 
@@ -196,13 +195,7 @@ def test_blinking_region_boxes_the_square_and_finds_its_burst_phase(flow):
 
 def test_blinking_region_of_noise_is_a_clear_miss():
     rng = np.random.default_rng(4)
-    n = 50_000
-    ev = make_events(
-        np.sort(rng.integers(0, 70_000, n)),
-        rng.integers(0, 240, n),
-        rng.integers(0, 180, n),
-        rng.choice([-1, 1], n),
-    )
+    ev = _noise(rng, 50_000, 70_000, rng.choice([-1, 1], 50_000))
     with pytest.raises(MarkerNotFound, match="temporal: nothing blinks at 30 Hz"):
         blinking_region([ev], CONFIG)
 
