@@ -22,6 +22,7 @@ import logging
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -352,18 +353,23 @@ class RateMeter:
 
     def __init__(self) -> None:
         self.events_per_s = 0.0
-        self._window: list[tuple[int, int]] = []  # (t_end_us, events) of recent chunks
+        self._window: deque[tuple[int, int]] = deque()  # (t_end_us, events) of recent chunks
+        self._after_first = 0
+        """Events of the window's chunks but its first (whose end starts the span)."""
         self._cpu = (time.monotonic(), time.process_time())
 
     def add(self, chunk: np.ndarray) -> None:
         if not len(chunk):
             return
         self._window.append((int(chunk["t"][-1]), len(chunk)))
+        if len(self._window) > 1:
+            self._after_first += len(chunk)
         while len(self._window) > 2 and self._window[-1][0] - self._window[0][0] > 1_000_000:
-            self._window.pop(0)
+            self._window.popleft()
+            self._after_first -= self._window[0][1]
         span_us = self._window[-1][0] - self._window[0][0]
         if span_us > 0:
-            self.events_per_s = sum(n for _, n in self._window[1:]) * 1e6 / span_us
+            self.events_per_s = self._after_first * 1e6 / span_us
 
     def cpu_load(self) -> float:
         wall, cpu = time.monotonic(), time.process_time()
