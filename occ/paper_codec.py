@@ -53,11 +53,6 @@ class PaperLayout:
         self.frame_bytes = cells * cells // 8
         self.frames = max(1, math.ceil(self.coded_size / self.frame_bytes))
 
-    def codeword_span(self, i: int) -> tuple[int, int]:
-        """Byte range [start, end) of codeword ``i`` in the coded stream."""
-        start = i * self.rs.n
-        return start, min(start + self.rs.n, self.coded_size)
-
     def data_span(self, i: int) -> tuple[int, int]:
         """Byte range of codeword ``i``'s data in the message."""
         return i * self.rs.k, min((i + 1) * self.rs.k, self.size)

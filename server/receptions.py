@@ -228,10 +228,6 @@ class ReceptionStore:
             ).fetchall()
         return [tuple(row) for row in rows]
 
-    def receiver_ids(self) -> list[str]:
-        with self._transaction() as db:
-            return [r[0] for r in db.execute("SELECT id FROM receivers ORDER BY last_seen DESC")]
-
     def totals(self) -> tuple[int, int]:
         """(receptions, their bytes), for the metrics."""
         with self._transaction() as db:
