@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
@@ -60,18 +61,27 @@ def test_the_linearised_footprint_lands_on_the_regions_of_the_exact_rays():
     offsets = rays[0] - centre[0]
     geo = plane_geometry(scene.layout)
     regs, counts = np.empty(16, np.int64), np.empty(16)
-    agree = total = 0
+    agree = total = kept = shifted = 0
     for step, Ti in enumerate(T):
-        exact = regions(rays_to_plane(rays, Ti), scene.layout)
+        points = rays_to_plane(rays, Ti)
+        exact = regions(points, scene.layout)
+        free = np.empty(len(xs))
         for j in range(len(xs)):
-            nd = moving._content(
-                centre[j, 0], centre[j, 1], path, step, 0, False, offsets, geo, regs, counts
+            nd, free[j] = moving._content(
+                centre[j, 0], centre[j, 1], path, step, 0, 0.0, 0.0, offsets, geo, regs, counts
             )
             found, n = np.unique(exact[j], return_counts=True)
             agree += np.array_equal(regs[:nd], found) and np.array_equal(counts[:nd], n)
             total += 1
+        # The returned room is how far every sample may move along either axis and stay put.
+        for direction in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            moved = points + 0.99 * free[:, None, None] * np.array(direction)
+            same = regions(moved, scene.layout) == exact
+            kept += same.sum()
+            shifted += same.size
     assert total > 5000
     assert agree / total > 0.998  # misses: samples within a hair of a cell edge
+    assert kept / shifted > 0.998
 
 
 def test_sub_step_interpolation_converges_on_a_moving_edge(monkeypatch):
@@ -87,6 +97,24 @@ def test_sub_step_interpolation_converges_on_a_moving_edge(monkeypatch):
     shift = np.concatenate([np.abs(coarse[p] - fine[p]) for p in same_count])
     assert np.median(shift) < 150
     assert np.quantile(shift, 0.99) < 500
+
+
+def test_pixels_rendered_blocks_ahead_give_the_events_of_window_by_window(monkeypatch):
+    # Each pixel renders several windows at a visit, staggered, and its later events wait for
+    # their window; rendering every pixel window by window must give the same events but for
+    # the sub-step grid (planned over more windows, it is finer where the camera is slower).
+    scene = _scene(motion=HandHeldMotion(distance_m=3.2, flow_px_per_ms=0.5, seed=2))
+    blocks = concat(simulate(scene, 0.04, chunk_us=5_000))
+    monkeypatch.setattr(moving, "BLOCK_US", 5_000)
+    windows = concat(simulate(scene, 0.04, chunk_us=5_000))
+    assert len(windows) > 5000
+    assert np.all(np.diff(blocks["t"]) >= 0)
+    assert len(blocks) == pytest.approx(len(windows), rel=0.01)
+    per_pixel = [
+        np.bincount(e["y"].astype(int) * CAM.width + e["x"], minlength=CAM.width * CAM.height)
+        for e in (blocks, windows)
+    ]
+    assert np.mean(np.abs(per_pixel[0] - per_pixel[1]) <= 1) > 0.97
 
 
 def test_a_full_output_buffer_reruns_the_pixel_and_loses_nothing(monkeypatch):

@@ -13,15 +13,21 @@ move linearly from one end's to the other's and its log irradiance is interpolat
 between samples (ESIM), taken at its end and, where one of its cells switches, just before the
 switch, at it and on a geometric ladder after it.
 
-Most footprints lie well inside one region, and for those the content is known without sampling:
-the distance from the centre point to the region's edge bounds how many sub-steps the footprint
-stays there, so a pixel costs one ray per run instead of a footprint per sub-step. Pixels outside
-the screen's image box see the uniform wall and keep their level.
+The distance from the footprint's samples to the edges of their regions bounds how many
+sub-steps its content stays the same, so a pixel costs a footprint per run (one ray when the
+footprint lies well inside one region) instead of one per sub-step. Pixels outside the screen's
+image box see the uniform wall and keep their level.
+
+A visit to a pixel costs more than the events of one short window, so each pixel is rendered
+several windows ahead (``BLOCK_US``), the pixels staggered so that every window visits an equal
+share; events past the window wait for theirs.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -58,6 +64,8 @@ from receiver.sim.sensor import (
 )
 
 MAX_STEP_PX = 0.5
+BLOCK_US = 40_000
+"""How far ahead a pixel is rendered at each visit: a few display refreshes."""
 """Largest image displacement of the screen within one sub-step (ESIM's flow-based step)."""
 _BOX_MARGIN_PX = 4
 _SETTLED_TAU = 6.0
@@ -204,17 +212,19 @@ def _row_of(py, geo):
 
 
 @numba.njit(cache=True, inline="always")
-def _content(rx, ry, path, s, region, inside, offsets, geo, regs, counts):
+def _content(rx, ry, path, s, region, room, reach, offsets, geo, regs, counts):
     """Fill ``regs``/``counts`` with the footprint's regions (ascending) and sample counts at
-    step ``s``; ``inside``: the footprint is known to lie on ``region``. Returns their number.
+    step ``s``, given the centre point's ``region`` and ``room`` (``_centre``) and ``reach``, a
+    bound of the samples' distance from it. Returns their number and how far (plane metres,
+    along either axis) the samples may move before one can leave its region.
 
     The samples are placed with the ray-to-plane map linearised at the centre ray (over a
     pixel the curvature of a perspective map is ~1e-3 px) and classified in cell units, so a
     sample costs a few multiply-adds instead of a ray intersection and two divisions."""
-    if inside:
+    if room > reach:  # the whole footprint lies on the centre's region
         regs[0] = region
         counts[0] = offsets.shape[0]
-        return 1
+        return 1, room - reach
     dx = path[s, _R] * rx + path[s, _R + 1] * ry + path[s, _R + 2]
     dy = path[s, _R + 3] * rx + path[s, _R + 4] * ry + path[s, _R + 5]
     dz = path[s, _R + 6] * rx + path[s, _R + 7] * ry + path[s, _R + 8]
@@ -223,7 +233,7 @@ def _content(rx, ry, path, s, region, inside, offsets, geo, regs, counts):
     if depth <= 0.0:  # the centre ray misses the plane: the wall, as for a lost sample
         regs[0] = WALL
         counts[0] = offsets.shape[0]
-        return 1
+        return 1, 0.0
     cell_m, ring, side, top, screen = geo[0], geo[1], geo[2], geo[3], geo[4]
     per_m = 1.0 / cell_m
     scale = depth * per_m  # plane metres -> cells
@@ -238,16 +248,23 @@ def _content(rx, ry, path, s, region, inside, offsets, geo, regs, counts):
     lo = top * per_m + ring
     hi = lo + screen * per_m
     nd = 0
+    free = np.inf  # in cells
     for q in range(offsets.shape[0]):
         ox, oy = offsets[q, 0], offsets[q, 1]
         col = col0 + j00 * ox + j01 * oy
         row = row0 + j10 * ox + j11 * oy
         if col >= 0.0 and col < side and row >= 0.0 and row < side:
             r = int(row) * int(side) + int(col)
+            fc, fr = col - int(col), row - int(row)
+            free = min(free, min(min(fc, 1.0 - fc), min(fr, 1.0 - fr)))
         elif col >= lo and col < hi and row >= lo and row < hi:
             r = SCREEN
+            to_marker = max(max(-col, col - side), max(-row, row - side))
+            to_edge = min(min(col - lo, hi - col), min(row - lo, hi - row))
+            free = min(free, min(to_marker, to_edge))
         else:
             r = WALL
+            free = min(free, max(max(lo - col, col - hi), max(lo - row, row - hi)))
         pos = 0
         while pos < nd and regs[pos] < r:
             pos += 1
@@ -258,7 +275,7 @@ def _content(rx, ry, path, s, region, inside, offsets, geo, regs, counts):
             regs[d], counts[d] = regs[d - 1], counts[d - 1]
         regs[pos], counts[pos] = r, 1.0
         nd += 1
-    return nd
+    return nd, free * cell_m
 
 
 @numba.njit(cache=True, inline="always")
@@ -414,21 +431,39 @@ def _insertion_sort(a, m):
 
 @numba.njit(cache=True, error_model="numpy")
 def _moving_window(
-    path, box, j_start, bounds, closed_form, rays, offsets, screen, lum, state, rfr, out
+    path,
+    box,
+    j_start,
+    bounds,
+    blocks,
+    closed_form,
+    rays,
+    offsets,
+    screen,
+    lum,
+    state,
+    done,
+    rfr,
+    out,
 ):
     """Events of the pixels ``j_start ..`` of ``box`` (x0, x1, y0, y1) over the sub-steps of
-    ``path``. ``bounds``: (reach, step), upper bounds on the marker plane of the distance from a
-    pixel's centre point to its footprint samples and of how far that point moves in one
-    sub-step. ``closed_form=False`` samples every sub-step (the reference the runs are tested
-    against). Returns (next pixel, count), stopping early when the output is full."""
+    ``path``, which spans ``q`` windows of ``per_window`` sub-steps from the start of window
+    ``w``: ``blocks`` = (w, q, per_window). A pixel rendered up to ``done`` past the first
+    window is skipped; the others are rendered to the end of their own block (``q`` windows,
+    staggered by pixel so that each window renders a ``1/q`` share). ``bounds``: (reach, step),
+    upper bounds on the marker plane of the distance from a pixel's centre point to its
+    footprint samples and of how far that point moves in one sub-step. ``closed_form=False``
+    samples every sub-step (the reference the runs are tested against). Returns (next pixel,
+    count), stopping early when the output is full."""
     x0, x1, y0, y1 = box
     reach_m, step_m = bounds
+    w, q, per_window = blocks
     geo = screen[0]
     if not closed_form:
         reach_m = np.inf
     width = rays.shape[1]
     s = offsets.shape[0]
-    m = path.shape[0] - 1
+    window_end = path[per_window, _T]
     # Contents at both ends of the sub-step in hand: row 0 its start (the run's), row 1 its end.
     regs = np.empty((2, s), np.int64)
     counts = np.empty((2, s))
@@ -442,34 +477,34 @@ def _moving_window(
         y = y0 + j // bw
         x = x0 + j % bw
         i = y * width + x
+        if done[i] >= window_end:
+            continue
+        m = per_window * (q - (w + i) % q)
         saved = (state[REF, i], state[LAST, i], state[LEVEL, i])
         n_before = n
         rx, ry = rays[y, x, 0], rays[y, x, 1]
         region, room, _ = _centre(rx, ry, path, 0, geo)
-        nd_a = _content(rx, ry, path, 0, region, room > reach_m, offsets, geo, regs[0], counts[0])
+        nd_a, room_a = _content(
+            rx, ry, path, 0, region, room, reach_m, offsets, geo, regs[0], counts[0]
+        )
         t_run = path[0, _T]
         step = 0
         while step < m:
-            if room > reach_m:  # the footprint stays on one region for ``safe`` sub-steps
-                safe = int((room - reach_m) / step_m)
-                if safe >= 1:
-                    step = min(step + safe, m)
-                    if step < m:
-                        region, room, _ = _centre(rx, ry, path, step, geo)
-                    continue
             end = step + 1
-            region_b, room_b, py_b = _centre(rx, ry, path, end, geo)
-            nd_b = _content(
-                rx, ry, path, end, region_b, room_b > reach_m, offsets, geo, regs[1], counts[1]
+            if closed_form and room_a >= step_m:  # no sample can leave its region before
+                end = min(step + int(room_a / step_m), m)
+            region, room, py_b = _centre(rx, ry, path, end, geo)
+            nd_b, room_b = _content(
+                rx, ry, path, end, region, room, reach_m, offsets, geo, regs[1], counts[1]
             )
             if closed_form and _same_content(regs, counts, nd_a, nd_b):
                 # Each sample moves straight and is on the same region at both ends: on a
                 # convex cell, all the way between (the screen margin and the wall are not
                 # convex, but a sub-step is too short to cut a corner of the marker).
-                step, region, room = end, region_b, room_b
+                step, room_a = end, room_b
                 continue
-            # The content changes within this sub-step: close the run, sample the step.
-            t_a, t_b = path[step, _T], path[end, _T]
+            # The content changes within the last sub-step: close the run, sample the step.
+            t_a, t_b = path[end - 1, _T], path[end, _T]
             if t_a > t_run:
                 n = _run(
                     t_run,
@@ -510,7 +545,7 @@ def _moving_window(
             regs[0, :nd_b] = regs[1, :nd_b]
             counts[0, :nd_b] = counts[1, :nd_b]
             nd_a = nd_b
-            step, region, room = end, region_b, room_b
+            step, room_a = end, room_b
         if path[m, _T] > t_run:
             n = _run(
                 t_run,
@@ -532,6 +567,7 @@ def _moving_window(
         if n > out.shape[0]:
             state[REF, i], state[LAST, i], state[LEVEL, i] = saved
             return j, n_before
+        done[i] = path[m, _T]
     return bw * (y1 - y0), n
 
 
@@ -549,12 +585,44 @@ def _fill_levels(path, rays, offsets, screen, lum, level):
         for x in range(w):
             rx, ry = rays[y, x, 0], rays[y, x, 1]
             _, _, py = _centre(rx, ry, path, 0, geo)
-            nd = _content(rx, ry, path, 0, 0, False, offsets, geo, regs, counts)
+            nd, _ = _content(rx, ry, path, 0, 0, 0.0, 0.0, offsets, geo, regs, counts)
             for d in range(nd):
                 weights[d] = counts[d] / s
             level[y * w + x] = _log_irradiance(
                 path[0, _T], _row_of(py, geo), 0.0, regs, weights, weights, nd, screen, lum
             )
+
+
+@numba.njit(cache=True)
+def _by_window(events, t0, chunk_us, windows):
+    """``events`` stably sorted by their window (of ``windows`` from t0; earlier ones in the
+    first, later ones in the last) and the end of each window's run."""
+    slot = np.empty(len(events), np.int64)
+    counts = np.zeros(windows, np.int64)
+    for e in range(len(events)):
+        slot[e] = min(max(int((events[e].t - t0) // chunk_us), 0), windows - 1)
+        counts[slot[e]] += 1
+    ends = np.cumsum(counts)
+    at = ends - counts
+    ordered = np.empty_like(events)
+    for e in range(len(events)):
+        ordered[at[slot[e]]] = events[e]
+        at[slot[e]] += 1
+    return ordered, ends
+
+
+class _Plan(NamedTuple):
+    """The kernels' camera path (sub-steps from ``t_start`` to ``t_stop``, ``per_window`` in
+    each window), pixel box, plane bounds and screen over a span of windows."""
+
+    t_start: int
+    t_stop: int
+    per_window: int
+    path: np.ndarray
+    box: tuple[int, int, int, int]
+    bounds: tuple[float, float]
+    screen: tuple
+    lum: np.ndarray
 
 
 class MovingRenderer:
@@ -563,9 +631,16 @@ class MovingRenderer:
     slow reference)."""
 
     def __init__(
-        self, scene, trajectory: Trajectory, timeline: DisplayTimeline, pixels: PixelArray
+        self,
+        scene,
+        trajectory: Trajectory,
+        timeline: DisplayTimeline,
+        pixels: PixelArray,
+        chunk_us: int,
     ) -> None:
         cam = scene.camera
+        self.chunk_us = chunk_us
+        self.blocks = max(1, round(BLOCK_US / chunk_us))
         self.camera, self.trajectory, self.timeline = cam, trajectory, timeline
         ys, xs = np.divmod(np.arange(cam.width * cam.height), cam.width)
         self.rays = centre_rays(cam, xs, ys).reshape(cam.height, cam.width, 2)
@@ -584,47 +659,57 @@ class MovingRenderer:
         win = timeline.window(timeline.start_refresh - 1, timeline.start_refresh)
         _fill_levels(self._path(np.zeros(2)), self.rays, self.offsets, *self._screen(win), level)
         self.state = pixel_state(level, pixels.threshold_on, pixels.threshold_off)
+        self.done = np.zeros(cam.width * cam.height)
+        """Time (us) up to which each pixel is rendered."""
         self.refractory = float(scene.sensor.refractory_us)
         self._out = EventBuffer()
+        self._ahead: deque[list[np.ndarray]] = deque()
+        """Events rendered past the window last asked for, by window from the next one."""
+        self._plan: _Plan | None = None
 
     def irradiance_now(self) -> np.ndarray:
         return np.exp(self.state[LEVEL])
 
-    def substeps(self, t0: float, t1: float) -> np.ndarray:
-        """Step boundaries in [t0, t1] keeping the screen's image motion per step small."""
-        probe = np.linspace(t0, t1, 9)
+    def substeps(self, t0: float, t1: float, windows: int = 1) -> np.ndarray:
+        """Step boundaries in [t0, t1], the same number in each of its ``windows`` equal parts,
+        keeping the screen's image motion per step small in the fastest part."""
+        probe = np.linspace(t0, t1, 8 * windows + 1)
         px = project_points(self.camera, self.trajectory.pose_at(probe), self.outline)
-        travel = np.linalg.norm(np.diff(px, axis=0), axis=2).max(axis=1).sum()
-        steps = max(1, math.ceil(travel / MAX_STEP_PX))
-        return np.linspace(t0, t1, steps + 1)
+        travel = np.linalg.norm(np.diff(px, axis=0), axis=2).max(axis=1)
+        per_window = max(1, math.ceil(travel.reshape(windows, 8).sum(axis=1).max() / MAX_STEP_PX))
+        return np.linspace(t0, t1, per_window * windows + 1)
 
-    def window(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Signal events in [t0, t1]: times (us, float), sensor pixel indices, polarities."""
-        tl, d = self.timeline, self.timeline.display
-        t_steps = self.substeps(t0, t1)
-        T = self.trajectory.pose_at(t_steps)
-        path = self._path(t_steps, T)
-        box = image_box(self.camera, T, self.outline, _BOX_MARGIN_PX + 0.02 * self.camera.width)
-        bounds = self._plane_bounds(T)
-        settle_us = _SETTLED_TAU * max(d.rise_ms, d.fall_ms) * 1e3
-        screen, lum = self._screen(
-            tl.window(tl.refresh_at(t0 - settle_us, 1.0), tl.refresh_at(t1, 0.0))
-        )
+    def window(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Signal events in [t0, t1], the next window of ``chunk_us``: times (us, float), sensor
+        pixel indices, polarities. Each pixel is rendered ``blocks`` windows at a time (the
+        visit, footprint and light of a pixel cost more than a window's events), its events
+        past ``t1`` held back."""
+        if t0 % self.chunk_us or t1 - t0 > self.chunk_us:
+            raise ValueError(f"[{t0}, {t1}] is not one window of {self.chunk_us} us")
+        q = self.blocks
+        plan = self._plan
+        if plan is None or t0 + q * self.chunk_us > plan.t_stop:
+            plan = self._plan = self._make_plan(t0)
+        first = (t0 - plan.t_start) // self.chunk_us * plan.per_window
+        path = plan.path[first : first + q * plan.per_window + 1]
+        blocks = (t0 // self.chunk_us, q, plan.per_window)
         parts = [np.empty(0, EVENT_OUT_DTYPE)]  # the box is empty when the screen is out of view
-        j, total = 0, (box[1] - box[0]) * (box[3] - box[2])
+        j, total = 0, (plan.box[1] - plan.box[0]) * (plan.box[3] - plan.box[2])
         while j < total:
             out = self._out.get()
             j_next, n = _moving_window(
                 path,
-                box,
+                plan.box,
                 j,
-                bounds,
+                plan.bounds,
+                blocks,
                 self.closed_form_runs,
                 self.rays,
                 self.offsets,
-                screen,
-                lum,
+                plan.screen,
+                plan.lum,
                 self.state,
+                self.done,
                 self.refractory,
                 out,
             )
@@ -632,8 +717,40 @@ class MovingRenderer:
             if j_next < total:
                 self._out.grow()
             j = j_next
-        events = np.concatenate(parts)
+        events = self._hold_back(np.concatenate(parts), t0)
         return events["t"], events["i"], events["p"]
+
+    def _hold_back(self, events: np.ndarray, t0: int) -> np.ndarray:
+        """The events of window ``t0`` (the new ``events`` and those held back before); the new
+        ones of later windows are held back, sorted into their windows."""
+        ordered, ends = _by_window(events, t0, self.chunk_us, self.blocks)
+        groups = np.split(ordered, ends[:-1])
+        now = np.concatenate([*self._ahead.popleft(), groups[0]]) if self._ahead else groups[0]
+        self._ahead.extend([] for _ in range(self.blocks - 1 - len(self._ahead)))
+        for held, group in zip(self._ahead, groups[1:], strict=True):
+            held.append(group)
+        return now
+
+    def _make_plan(self, t0: int) -> _Plan:
+        """What the windows from ``t0`` need of the camera path and the screen, for two
+        blocks' worth of windows (planning costs more Python than a window's kernel call)."""
+        tl, d, windows = self.timeline, self.timeline.display, 2 * self.blocks
+        t_steps = self.substeps(t0, t0 + windows * self.chunk_us, windows)
+        T = self.trajectory.pose_at(t_steps)
+        settle_us = _SETTLED_TAU * max(d.rise_ms, d.fall_ms) * 1e3
+        screen, lum = self._screen(
+            tl.window(tl.refresh_at(t0 - settle_us, 1.0), tl.refresh_at(t_steps[-1], 0.0))
+        )
+        return _Plan(
+            t_start=t0,
+            t_stop=int(t_steps[-1]),
+            per_window=(len(t_steps) - 1) // windows,
+            path=self._path(t_steps, T),
+            box=image_box(self.camera, T, self.outline, _BOX_MARGIN_PX + 0.02 * self.camera.width),
+            bounds=self._plane_bounds(T),
+            screen=screen,
+            lum=lum,
+        )
 
     def _path(self, t_steps: np.ndarray, T: np.ndarray | None = None) -> np.ndarray:
         """The kernels' camera path at ``t_steps`` (poses ``T`` there, if known already)."""
@@ -652,12 +769,14 @@ class MovingRenderer:
         centre point along either plane axis (regions are axis-aligned boxes, so that is the
         distance that matters) and of how far that point moves in one sub-step, with a safety
         factor for lens distortion and for the variation over the screen (the bounds are taken
-        at its corners, where the view is most oblique and distant)."""
+        at its corners, where the view is most oblique and distant, at the start, middle and end
+        of the path)."""
         px = project_points(self.camera, T, self.outline)  # (steps, 4, 2)
         step_px = float(np.linalg.norm(np.diff(px, axis=0), axis=2).max(initial=0.0))
         K = self.camera.K
         m_per_px = reach_m = 0.0
-        for Ti, corners in zip(T[[0, -1]], px[[0, -1]], strict=True):
+        probes = [0, len(T) // 2, -1]
+        for Ti, corners in zip(T[probes], px[probes], strict=True):
             rays = (corners - K[:2, 2]) / K[[0, 1], [0, 1]]
             centre = rays_to_plane(rays, Ti)
             for shift in np.eye(2):
