@@ -95,7 +95,9 @@ def _run(rec: Recording) -> Iterator[np.ndarray]:
 def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: PixelArray):
     sensor, cam = scene.sensor, scene.camera
     if not rec.trajectory.is_static:
-        return MovingRenderer(scene, rec.trajectory, timeline, pixels, rec.chunk_us)
+        return MovingRenderer(
+            scene, rec.trajectory, timeline, pixels, rec.chunk_us, rec.duration_us
+        )
     T = rec.trajectory.pose_at(np.zeros(1))[0]
     pix_index = _pixels_near_marker(scene, T)
     rays = sample_rays(cam, scene.optics, pix_index % cam.width, pix_index // cam.width)

@@ -314,10 +314,14 @@ def _merge(regs, counts, nd_a, nd_b, merged, w0, w1):
 @numba.njit(cache=True, inline="always")
 def _row_fraction(t, rx, ry, path, geo):
     """Screen-height fraction of the point under ray (rx, ry) at time t (poses interpolated)."""
-    m = path.shape[0] - 1
-    dt = (path[m, _T] - path[0, _T]) / m
-    s = min(max(int((t - path[0, _T]) / dt), 0), m - 1)
-    alpha = min(max((t - path[s, _T]) / dt, 0.0), 1.0)
+    s, hi = 0, path.shape[0] - 1  # the sub-step holding t (their lengths vary by window)
+    while hi - s > 1:
+        mid = (s + hi) // 2
+        if path[mid, _T] <= t:
+            s = mid
+        else:
+            hi = mid
+    alpha = min(max((t - path[s, _T]) / (path[s + 1, _T] - path[s, _T]), 0.0), 1.0)
     _, y0 = plane_point(rx, ry, path, s)
     _, y1 = plane_point(rx, ry, path, s + 1)
     return _row_of(y0 + alpha * (y1 - y0), geo)
@@ -436,6 +440,7 @@ def _moving_window(
     j_start,
     bounds,
     blocks,
+    ends,
     closed_form,
     rays,
     offsets,
@@ -447,23 +452,24 @@ def _moving_window(
     out,
 ):
     """Events of the pixels ``j_start ..`` of ``box`` (x0, x1, y0, y1) over the sub-steps of
-    ``path``, which spans ``q`` windows of ``per_window`` sub-steps from the start of window
-    ``w``: ``blocks`` = (w, q, per_window). A pixel rendered up to ``done`` past the first
-    window is skipped; the others are rendered to the end of their own block (``q`` windows,
-    staggered by pixel so that each window renders a ``1/q`` share). ``bounds``: (reach, step),
+    ``path``, which spans ``q`` windows from the start of window ``w``, window k ending at
+    sub-step ``ends[k + 1]`` (``blocks`` = (w, q, last): the recording ends with window
+    ``last``). A pixel rendered up to ``done`` past the first window is skipped; the others are
+    rendered to the end of their own block (``q`` windows, staggered by pixel so that each
+    window renders a ``1/q`` share) or of the recording. ``bounds``: (reach, step),
     upper bounds on the marker plane of the distance from a pixel's centre point to its
     footprint samples and of how far that point moves in one sub-step. ``closed_form=False``
     samples every sub-step (the reference the runs are tested against). Returns (next pixel,
     count), stopping early when the output is full."""
     x0, x1, y0, y1 = box
     reach_m, step_m = bounds
-    w, q, per_window = blocks
+    w, q, last = blocks
     geo = screen[0]
     if not closed_form:
         reach_m = np.inf
     width = rays.shape[1]
     s = offsets.shape[0]
-    window_end = path[per_window, _T]
+    window_end = path[ends[1], _T]
     # Contents at both ends of the sub-step in hand: row 0 its start (the run's), row 1 its end.
     regs = np.empty((2, s), np.int64)
     counts = np.empty((2, s))
@@ -479,7 +485,7 @@ def _moving_window(
         i = y * width + x
         if done[i] >= window_end:
             continue
-        m = per_window * (q - (w + i) % q)
+        m = ends[min(q - (w + i) % q, last)]
         saved = (state[REF, i], state[LAST, i], state[LEVEL, i])
         n_before = n
         rx, ry = rays[y, x, 0], rays[y, x, 1]
@@ -612,12 +618,12 @@ def _by_window(events, t0, chunk_us, windows):
 
 
 class _Plan(NamedTuple):
-    """The kernels' camera path (sub-steps from ``t_start`` to ``t_stop``, ``per_window`` in
-    each window), pixel box, plane bounds and screen over a span of windows."""
+    """The kernels' camera path (sub-steps from ``t_start`` to ``t_stop``, window k's ending
+    at ``ends[k + 1]``), pixel box, plane bounds and screen over a span of windows."""
 
     t_start: int
     t_stop: int
-    per_window: int
+    ends: np.ndarray
     path: np.ndarray
     box: tuple[int, int, int, int]
     bounds: tuple[float, float]
@@ -637,9 +643,10 @@ class MovingRenderer:
         timeline: DisplayTimeline,
         pixels: PixelArray,
         chunk_us: int,
+        duration_us: int,
     ) -> None:
         cam = scene.camera
-        self.chunk_us = chunk_us
+        self.chunk_us, self.duration_us = chunk_us, duration_us
         self.blocks = max(1, round(BLOCK_US / chunk_us))
         self.camera, self.trajectory, self.timeline = cam, trajectory, timeline
         ys, xs = np.divmod(np.arange(cam.width * cam.height), cam.width)
@@ -670,14 +677,23 @@ class MovingRenderer:
     def irradiance_now(self) -> np.ndarray:
         return np.exp(self.state[LEVEL])
 
-    def substeps(self, t0: float, t1: float, windows: int = 1) -> np.ndarray:
-        """Step boundaries in [t0, t1], the same number in each of its ``windows`` equal parts,
-        keeping the screen's image motion per step small in the fastest part."""
+    def substeps(self, t0: float, t1: float, windows: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Step boundaries in [t0, t1], equal within each of its ``windows`` equal parts and
+        keeping the screen's image motion per step small there, and the index of the boundary
+        that ends each part (and of t0 first)."""
         probe = np.linspace(t0, t1, 8 * windows + 1)
         px = project_points(self.camera, self.trajectory.pose_at(probe), self.outline)
         travel = np.linalg.norm(np.diff(px, axis=0), axis=2).max(axis=1)
-        per_window = max(1, math.ceil(travel.reshape(windows, 8).sum(axis=1).max() / MAX_STEP_PX))
-        return np.linspace(t0, t1, per_window * windows + 1)
+        steps = np.maximum(1, np.ceil(travel.reshape(windows, 8).sum(axis=1) / MAX_STEP_PX))
+        bounds = np.linspace(t0, t1, windows + 1)
+        t_steps = np.concatenate(
+            [
+                np.linspace(a, b, int(k), endpoint=False)
+                for a, b, k in zip(bounds[:-1], bounds[1:], steps, strict=True)
+            ]
+            + [[t1]]
+        )
+        return t_steps, np.concatenate([[0], np.cumsum(steps)]).astype(np.int64)
 
     def window(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signal events in [t0, t1], the next window of ``chunk_us``: times (us, float), sensor
@@ -690,9 +706,10 @@ class MovingRenderer:
         plan = self._plan
         if plan is None or t0 + q * self.chunk_us > plan.t_stop:
             plan = self._plan = self._make_plan(t0)
-        first = (t0 - plan.t_start) // self.chunk_us * plan.per_window
-        path = plan.path[first : first + q * plan.per_window + 1]
-        blocks = (t0 // self.chunk_us, q, plan.per_window)
+        k = (t0 - plan.t_start) // self.chunk_us
+        ends = plan.ends[k : k + q + 1] - plan.ends[k]
+        path = plan.path[plan.ends[k] : plan.ends[k + q] + 1]
+        blocks = (t0 // self.chunk_us, q, -(-(self.duration_us - t0) // self.chunk_us))
         parts = [np.empty(0, EVENT_OUT_DTYPE)]  # the box is empty when the screen is out of view
         j, total = 0, (plan.box[1] - plan.box[0]) * (plan.box[3] - plan.box[2])
         while j < total:
@@ -703,6 +720,7 @@ class MovingRenderer:
                 j,
                 plan.bounds,
                 blocks,
+                ends,
                 self.closed_form_runs,
                 self.rays,
                 self.offsets,
@@ -735,7 +753,7 @@ class MovingRenderer:
         """What the windows from ``t0`` need of the camera path and the screen, for two
         blocks' worth of windows (planning costs more Python than a window's kernel call)."""
         tl, d, windows = self.timeline, self.timeline.display, 2 * self.blocks
-        t_steps = self.substeps(t0, t0 + windows * self.chunk_us, windows)
+        t_steps, ends = self.substeps(t0, t0 + windows * self.chunk_us, windows)
         T = self.trajectory.pose_at(t_steps)
         settle_us = _SETTLED_TAU * max(d.rise_ms, d.fall_ms) * 1e3
         screen, lum = self._screen(
@@ -744,7 +762,7 @@ class MovingRenderer:
         return _Plan(
             t_start=t0,
             t_stop=int(t_steps[-1]),
-            per_window=(len(t_steps) - 1) // windows,
+            ends=ends,
             path=self._path(t_steps, T),
             box=image_box(self.camera, T, self.outline, _BOX_MARGIN_PX + 0.02 * self.camera.width),
             bounds=self._plane_bounds(T),
