@@ -423,6 +423,30 @@ def _sampled_step(ta, tb, v, regs, w0, w1, nd, times, screen, lum, i, state, rfr
 
 
 @numba.njit(cache=True, inline="always")
+def _same_light(ta, tb, v, regs, w0, w1, nd, disp, lum):
+    """Whether the footprint sees the same light over [ta, tb] whether its weights are ``w0``
+    or ``w1``: every region whose weight changes is a cell showing what the others show in
+    each refresh reaching screen row v in that time (a sample crossing between two cells that
+    show the same bits, or between the cells of the white ring)."""
+    kk_a = _lum_row(_refresh_at(ta, v, disp)[0], disp, lum)
+    kk_b = _lum_row(_refresh_at(tb, v, disp)[0], disp, lum)
+    first = -1
+    for d in range(nd):
+        if w0[d] == w1[d]:
+            continue
+        c = regs[d]
+        if c < 0:
+            return False
+        if first < 0:
+            first = c
+            continue
+        for kk in range(kk_a, kk_b + 1):
+            if lum[0, kk, c] != lum[0, kk, first] or lum[1, kk, c] != lum[1, kk, first]:
+                return False
+    return True
+
+
+@numba.njit(cache=True, inline="always")
 def _insertion_sort(a, m):
     for r in range(1, m):
         x = a[r]
@@ -530,24 +554,14 @@ def _moving_window(
                     n,
                 )
             nd = _merge(regs, counts, nd_a, nd_b, merged, w0, w1)
-            n = _sampled_step(
-                t_a,
-                t_b,
-                _row_of(py_b, geo),
-                merged,
-                w0,
-                w1,
-                nd,
-                times,
-                screen,
-                lum,
-                i,
-                state,
-                rfr,
-                out,
-                n,
-            )
-            t_run = t_b
+            v = _row_of(py_b, geo)
+            if closed_form and _same_light(t_a, t_b, v, merged, w0, w1, nd, screen[1], lum):
+                t_run = t_a  # a run of the new content from here on sees the same light
+            else:
+                n = _sampled_step(
+                    t_a, t_b, v, merged, w0, w1, nd, times, screen, lum, i, state, rfr, out, n
+                )
+                t_run = t_b
             regs[0, :nd_b] = regs[1, :nd_b]
             counts[0, :nd_b] = counts[1, :nd_b]
             nd_a = nd_b
