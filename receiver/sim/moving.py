@@ -66,6 +66,8 @@ from receiver.sim.sensor import (
 MAX_STEP_PX = 0.5
 BLOCK_US = 40_000
 """How far ahead a pixel is rendered at each visit: a few display refreshes."""
+_STAGGER_RUN = 64
+"""Pixels in a row that share their block phase (neighbours in memory visited together)."""
 """Largest image displacement of the screen within one sub-step (ESIM's flow-based step)."""
 _BOX_MARGIN_PX = 4
 _SETTLED_TAU = 6.0
@@ -479,7 +481,7 @@ def _moving_window(
     ``path``, which spans ``q`` windows from the start of window ``w``, window k ending at
     sub-step ``ends[k + 1]`` (``blocks`` = (w, q, last): the recording ends with window
     ``last``). A pixel rendered up to ``done`` past the first window is skipped; the others are
-    rendered to the end of their own block (``q`` windows, staggered by pixel so that each
+    rendered to the end of their own block (``q`` windows, staggered by runs of pixels so that each
     window renders a ``1/q`` share) or of the recording. ``bounds``: (reach, step),
     upper bounds on the marker plane of the distance from a pixel's centre point to its
     footprint samples and of how far that point moves in one sub-step. ``closed_form=False``
@@ -509,7 +511,7 @@ def _moving_window(
         i = y * width + x
         if done[i] >= window_end:
             continue
-        m = ends[min(q - (w + i) % q, last)]
+        m = ends[min(q - (w + i // _STAGGER_RUN) % q, last)]
         saved = (state[REF, i], state[LAST, i], state[LEVEL, i])
         n_before = n
         rx, ry = rays[y, x, 0], rays[y, x, 1]
