@@ -13,7 +13,12 @@ from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.sim import HandHeldMotion, Scene, SensorModel, StaticMotion, simulate
 from receiver.sim.scene import marker_size_for_cell_px
-from receiver.virtual_camera import DISTANCE_M, default_camera, virtual_sensor
+from receiver.virtual_camera import (
+    DISTANCE_M,
+    HANDHELD_FLOW_PX_PER_MS,
+    default_camera,
+    virtual_sensor,
+)
 
 DURATION_S = 0.5
 PAPER = CameraModel.paper()
@@ -59,14 +64,18 @@ CASES = {
     "hand-held 1 px/ms, 16 cells, 0.6 m, 1280x720": lambda: _paper_scene(
         16, PAPER, HandHeldMotion(distance_m=0.6, flow_px_per_ms=1.0)
     ),
-    "demo: static, 16 cells robust, 2.5 m, 320x180": lambda: _demo_scene(
+    f"demo: static, 16 cells robust, {DISTANCE_M} m, 320x180 binned": lambda: _demo_scene(
         StaticMotion(distance_m=DISTANCE_M)
     ),
-    "demo: hand-held 0.2 px/ms, 16 cells robust, 2.5 m, 320x180": lambda: _demo_scene(
-        HandHeldMotion(distance_m=DISTANCE_M, flow_px_per_ms=0.2)
+    f"demo: hand-held {HANDHELD_FLOW_PX_PER_MS} px/ms, 16 cells robust, {DISTANCE_M} m, "
+    "320x180 binned": lambda: _demo_scene(
+        HandHeldMotion(distance_m=DISTANCE_M, flow_px_per_ms=HANDHELD_FLOW_PX_PER_MS)
     ),
-    "demo: hand-held 0.5 px/ms, 16 cells robust, 2.5 m, 320x180": lambda: _demo_scene(
-        HandHeldMotion(distance_m=DISTANCE_M, flow_px_per_ms=0.5)
+    f"demo: hand-held 0.2 px/ms, 16 cells robust, {DISTANCE_M} m, 320x180 binned": lambda: (
+        _demo_scene(HandHeldMotion(distance_m=DISTANCE_M, flow_px_per_ms=0.2))
+    ),
+    f"demo: hand-held 0.5 px/ms, 16 cells robust, {DISTANCE_M} m, 320x180 binned": lambda: (
+        _demo_scene(HandHeldMotion(distance_m=DISTANCE_M, flow_px_per_ms=0.5))
     ),
 }
 

@@ -45,6 +45,20 @@ class CameraModel:
         K[1, 2] += (height - self.height) / 2
         return CameraModel(width, height, K, self.dist)
 
+    def binned(self, width: int, height: int) -> CameraModel:
+        """The whole field of view on ``width`` x ``height`` pixels, as if binned: the same
+        angles on fewer pixels (``resized`` keeps the pixel pitch and crops the view)."""
+        s = height / self.height
+        if abs(width - self.width * s) > 1:
+            raise ValueError(
+                f"a binned sensor keeps the {self.width}x{self.height} aspect ratio; "
+                f"{width}x{height} does not"
+            )
+        K = self.K.copy()
+        K[:2, :2] *= s
+        K[:2, 2] = (K[:2, 2] + 0.5) * s - 0.5  # pixel centres at integer coordinates
+        return CameraModel(width, height, K, self.dist)
+
     @property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist))

@@ -10,7 +10,7 @@ import pytest
 
 from bench.__main__ import main
 from bench.experiments.baselines import code_families, run_frame_baseline
-from bench.experiments.eventcam import EventRun, binned_camera, camera
+from bench.experiments.eventcam import EventRun, camera
 from bench.experiments.streaming import FIT_SHARE, PAPER_CELL_PX, cell_px, paper_cell_px
 from bench.framecam import FrameCamera, Slideshow
 from occ.marker import MarkerGeometry
@@ -109,19 +109,6 @@ def test_streaming_marker_fits_the_view_at_the_papers_cell_size_or_less(sensor):
     # N = 16's white ring fits at (almost) the paper's size; N = 96's needs smaller cells.
     assert cell_px(16, cam) > 0.95 * paper_cell_px(16, cam)
     assert cell_px(96, cam) < 0.8 * paper_cell_px(96, cam)
-
-
-def test_binned_camera_sees_the_papers_view_with_fewer_pixels():
-    full, binned = CameraModel.paper(), binned_camera((320, 180))
-    point = np.array([[0.1, -0.05, 0.6]])  # camera frame, metres
-    # Pixel centres map as (u + 0.5) * scale - 0.5: the same ray lands on the same spot.
-    assert np.allclose((full.project(point) + 0.5) / 4 - 0.5, binned.project(point))
-    assert np.array_equal(binned_camera(None).K, full.K)
-
-
-def test_binned_camera_rejects_another_aspect_ratio():
-    with pytest.raises(ValueError, match="aspect ratio"):
-        binned_camera((320, 240))
 
 
 def _run(messages: list[dict], first_read_s: float | None) -> EventRun:

@@ -38,3 +38,16 @@ def test_bad_calibration_is_refused(kwargs, message):
     args = {"width": 64, "height": 48, "K": np.diag([50.0, 50.0, 1.0]), "dist": np.zeros(5)}
     with pytest.raises(ValueError, match=message):
         CameraModel(**(args | kwargs))
+
+
+def test_a_binned_camera_sees_the_whole_view_with_fewer_pixels():
+    full = CameraModel.paper()
+    binned = full.binned(320, 180)
+    point = np.array([[0.1, -0.05, 0.6]])  # camera frame, metres
+    # Pixel centres map as (u + 0.5) * scale - 0.5: the same ray lands on the same spot.
+    assert np.allclose((full.project(point) + 0.5) / 4 - 0.5, binned.project(point))
+
+
+def test_a_binned_camera_keeps_the_aspect_ratio():
+    with pytest.raises(ValueError, match="aspect ratio"):
+        CameraModel.paper().binned(320, 240)

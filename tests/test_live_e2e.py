@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from receiver.virtual_camera import DISTANCE_M
+
 pytestmark = pytest.mark.browser
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -94,8 +96,8 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
     with urllib.request.urlopen(base_url + href) as response:
         assert response.read() == TEXT.encode()
     distance = float(readout.split("distance")[1].split()[0])
-    assert 2.0 < distance < 3.0, (
-        f"the virtual camera stands 2.5 m away, the dashboard says {readout}"
+    assert distance == pytest.approx(DISTANCE_M, rel=0.2), (
+        f"the virtual camera stands {DISTANCE_M} m away, the dashboard says {readout}"
     )
     assert (tmp_path / "out" / "messages" / f"{digest[:12]}-hello.txt").read_text() == TEXT
     assert "message 'hello.txt' complete" in log

@@ -64,18 +64,7 @@ def binned_camera(sensor: Sensor) -> CameraModel:
     so much that the tilt of a 0.27 m marker becomes ambiguous (the pose flips); binning keeps
     the paper's distances, angles and motions, and only the pixels per cell drop."""
     cam = CameraModel.paper()
-    if sensor is None:
-        return cam
-    s = binning(sensor)
-    if abs(sensor[0] - cam.width * s) > 1:
-        raise ValueError(
-            f"a binned sensor keeps the {cam.width}x{cam.height} aspect ratio; "
-            f"{sensor[0]}x{sensor[1]} does not"
-        )
-    K = cam.K.copy()
-    K[:2, :2] *= s
-    K[:2, 2] = (K[:2, 2] + 0.5) * s - 0.5  # pixel centres at integer coordinates
-    return CameraModel(sensor[0], sensor[1], K, cam.dist)
+    return cam if sensor is None else cam.binned(*sensor)
 
 
 def hand_held_scene(
