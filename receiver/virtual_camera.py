@@ -236,6 +236,8 @@ class VirtualCamera:
         ``time + (k - frame) * period``."""
         self._encoder: tuple[Showing, StreamEncoder] | None = None
         self._last_t = -1
+        self._path_us = 0
+        """Time the camera has moved along its path: the simulated time, skips left out."""
         self._behind_note = _BehindNote()
 
     def encoder(self, showing: Showing) -> StreamEncoder:
@@ -257,11 +259,12 @@ class VirtualCamera:
         from receiver.sim import Display, HandHeldMotion, Scene, StaticMotion
 
         motion = (
-            # A new seed at each skip: the wander restarts from another pose, as after a jolt.
+            # The hand carries on where it was, across skips ahead and new messages alike.
             HandHeldMotion(
                 distance_m=DISTANCE_M,
                 flow_px_per_ms=HANDHELD_FLOW_PX_PER_MS,
-                seed=self.seed + self.skips,
+                seed=self.seed,
+                start_s=self._path_us / 1e6,
             )
             if self.motion == "handheld"
             else StaticMotion(distance_m=DISTANCE_M)
@@ -345,6 +348,7 @@ class VirtualCamera:
                     self.clock.start(self._last_t)
                 late_s = self.clock.wait(self._last_t)
             window_us += self.chunk_us
+            self._path_us += self.chunk_us
             yield events
             if late_s > MAX_LAG_S:
                 self.speed = _speed(window_us, late_s - late_before)

@@ -121,6 +121,30 @@ def test_a_skip_keeps_the_screens_timeline(camera, monkeypatch):
         assert t - first_events[0] == pytest.approx(frame * period_us, abs=1.0)
 
 
+def test_a_skip_keeps_the_hand_held_camera_on_its_path(camera, monkeypatch):
+    # The pose goes on from where it was, so the receiver's tracker can keep its lock over the
+    # gap (a wander restarted elsewhere looked like a jolt and lost it).
+    camera, wall, _ = camera
+    camera.motion = "handheld"
+    monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=0.4))
+    encoder = StreamEncoder(b"path", profile="robust", cells=16)
+    scenes, chunks = [], [0]
+
+    def scene(_, showing):
+        scenes.append((VirtualCamera.scene(camera, encoder, showing), chunks[0]))
+        return showing
+
+    monkeypatch.setattr(camera, "scene", scene)
+    for _ in itertools.islice(camera.chunks(), 2000):
+        chunks[0] += 1
+        if camera.skips == 2:
+            break
+    assert len(scenes) == 3
+    for built, chunks_before in scenes:
+        assert built.motion.start_s == pytest.approx(chunks_before * CHUNK_US / 1e6)
+    assert scenes[-1][1] > 0 and len({built.motion.seed for built, _ in scenes}) == 1
+
+
 def test_a_simulation_faster_than_real_time_is_paced_and_never_skips(camera, monkeypatch):
     camera, wall, _ = camera
     monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=3.0))

@@ -40,6 +40,18 @@ def test_ground_truth_poses_and_refresh_times():
     assert times[0] == 0.0 and np.allclose(np.diff(times), 1e6 / 60)
 
 
+def test_a_hand_held_path_started_later_carries_on_from_there():
+    motion = HandHeldMotion(distance_m=4.0, flow_px_per_ms=0.5, seed=2)
+    later = HandHeldMotion(distance_m=4.0, flow_px_per_ms=0.5, seed=2, start_s=0.25)
+    t = np.array([0, 10_000, 20_000])
+    rig = scene().rig
+    assert np.allclose(
+        later.trajectory(rig).pose_at(t), motion.trajectory(rig).pose_at(t + 250_000)
+    )
+    s = scene(motion=later)
+    assert Scene.from_dict(json.loads(json.dumps(s.describe()))).motion == later
+
+
 @pytest.mark.parametrize(
     ("make", "message"),
     [

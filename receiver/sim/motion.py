@@ -108,6 +108,8 @@ class HandHeldMotion:
     distance_m: float = 0.6
     flow_px_per_ms: float = 1.0
     seed: int = 0
+    start_s: float = 0.0
+    """Where on its path the wander starts: a camera that resumes after a gap carries on."""
 
     def __post_init__(self) -> None:
         if self.distance_m <= 0:
@@ -137,6 +139,7 @@ class _Wander:
         weights = rng.uniform(0.5, 1.0, (6, _WANDER_TERMS))
         self._weight = weights / weights.sum(1, keepdims=True)
         self._speed = 1.0
+        self._start_s = 0.0  # the flow is set on the path from its beginning
         self._shift_m = 0.0
         cam = rig.camera
         marker_px = self._marker_extent_px(self._base_poses(np.zeros(1))[0])
@@ -150,10 +153,11 @@ class _Wander:
         self._shift_m = _SHIFT_FRACTION * free_px * motion.distance_m / cam.K[0, 0]
         probe = np.linspace(0, _FLOW_PROBE_S * 1e6, 4001)
         self._speed = motion.flow_px_per_ms / self.mean_flow_px_per_ms(probe)
+        self._start_s = motion.start_s
 
     def _signals(self, t_us: np.ndarray) -> np.ndarray:
         """(6, n) wander of each degree of freedom, in [-1, 1]."""
-        t = np.asarray(t_us, float).ravel() * 1e-6 * self._speed
+        t = (np.asarray(t_us, float).ravel() * 1e-6 + self._start_s) * self._speed
         arg = 2 * math.pi * self._freq[:, :, None] * t + self._phase[:, :, None]
         return np.einsum("dk,dkn->dn", self._weight, np.sin(arg))
 
