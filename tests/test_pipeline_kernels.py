@@ -1,9 +1,13 @@
 """The receiver's per-event kernels against plain reference implementations: the triage pass, the
-burst read-out, the tracker mask, the columns, cluster re-binning and the pose solver's normal
-equations. Each reference is the obvious (slow) way to compute the same thing."""
+burst read-out, the tracker mask, the columns, cluster re-binning and ageing, the pose solver's
+normal equations, the projection, the detector's event selection and corner fit. Each reference
+is the obvious (slow) way to compute the same thing."""
 
 from __future__ import annotations
 
+import copy
+
+import cv2
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -12,7 +16,8 @@ from receiver.camera import CameraModel
 from receiver.events import make_events
 from receiver.pipeline.buffer import to_columns
 from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.pose import _residuals
+from receiver.pipeline.locate import Box, events_between, outline, quadrilateral
+from receiver.pipeline.pose import _residuals, project_ideal
 from receiver.pipeline.tracker import EdgeTracker, _assign, _capture_points
 from receiver.pipeline.triage import TILE, EventTriage
 from receiver.poses import make_pose
@@ -220,10 +225,105 @@ def test_pose_normal_equations_match_a_numeric_jacobian():
     eps = 1e-7
     J = np.stack([(signed(eps * np.eye(6)[j]) - r) / eps for j in range(6)], axis=1)
     wgt = np.where(np.abs(r) <= huber, 1.0, huber / np.abs(r))
-    _, H, g = _residuals(R, t, k, pts, edge.astype(np.int64), ends, huber, True)
+    _, H, g = _residuals(R, t, k, pts, edge.astype(np.int64), ends, huber)
     assert np.allclose(H, H.T)
     assert np.allclose(H, J.T @ (wgt[:, None] * J), rtol=1e-4, atol=1e-3 * np.abs(H).max())
     assert np.allclose(g, J.T @ (wgt * r), rtol=1e-4, atol=1e-3 * np.abs(g).max())
+
+
+def test_pose_normal_equations_do_not_depend_on_the_points_order():
+    """The per-edge moments add up while points stay on one edge (the tracker's clusters come
+    edge by edge, a capture's points in any order): both orders give one system."""
+    rng = np.random.default_rng(5)
+    config = ReceiverConfig(CameraModel(346, 260, K))
+    ends = config.geometry.tracked_edges(SIZE)
+    R, t = np.eye(3), np.array([-SIZE / 2, -SIZE / 2, 0.6])
+    k = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    edge = np.sort(rng.integers(0, 8, 300))
+    pts = rng.uniform(0, 346, (300, 2))  # far off the lines too: Huber's linear part
+    grouped = _residuals(R, t, k, pts, edge, ends, 1.0)
+    order = rng.permutation(300)
+    shuffled = _residuals(R, t, k, pts[order], edge[order], ends, 1.0)
+    for a, b in zip(grouped, shuffled, strict=True):
+        assert np.allclose(a, b, rtol=1e-12, atol=0.0)
+
+
+def test_projection_matches_the_pinhole_formula_and_marks_points_behind_the_camera():
+    rng = np.random.default_rng(6)
+    T = make_pose(np.eye(3), [-0.1, -0.1, 0.5])
+    points = rng.uniform(-0.3, 0.3, (4, 2, 3))
+    points[0, 0, 2] = -0.6  # behind the camera
+    px = project_ideal(T, K, points)
+    assert px.shape == (4, 2, 2)
+    cam = points + T[:3, 3]
+    expected = cam[..., :2] / cam[..., 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    assert np.isnan(px[0, 0]).all()
+    assert np.allclose(px.reshape(-1, 2)[1:], expected.reshape(-1, 2)[1:], rtol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 5), st.integers(1, 200))
+def test_events_between_filters_and_thins_as_if_joined_first(seed, pieces, most):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 600))
+    events = make_events(
+        np.sort(rng.integers(0, 1000, n)),
+        rng.integers(0, WIDTH, n),
+        rng.integers(0, HEIGHT, n),
+        rng.choice([-1, 1], n),
+    )
+    parts = np.array_split(events, pieces)
+    box = Box(5, 3, 40, 30)
+    joined = events[(events["t"] >= 100) & (events["t"] < 900)]
+    inside = (
+        (joined["p"] == -1)
+        & (joined["x"] >= 5)
+        & (joined["x"] < 40)
+        & (joined["y"] >= 3)
+        & (joined["y"] < 30)
+    )
+    expected = joined[inside]
+    assert np.array_equal(events_between(parts, 100, 900, polarity=-1, box=box), expected)
+    thinned = events_between(parts, 100, 900, most=most)
+    assert np.array_equal(thinned, joined[:: max(1, len(joined) // most)])
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.floats(0, np.pi / 2),
+    st.floats(8.0, 30.0),
+    st.floats(-3.0, 3.0),
+    st.floats(-3.0, 3.0),
+    st.integers(0, 2**32 - 1),
+)
+def test_quadrilateral_of_a_blobs_outline_is_that_of_all_its_pixels(turn, half, dx, dy, seed):
+    """The detector fits the locator's corners to the outlines of its blob: the same hull as
+    all its pixels, started at the same vertex (the polygon fit depends on where it starts)."""
+    c, s = np.cos(turn), np.sin(turn)
+    square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1.0]]) * half @ [[c, s], [-s, c]]
+    image = np.zeros((80, 80), np.uint8)
+    centre = np.array([40 + dx, 40 + dy])
+    cv2.fillConvexPoly(image, np.round(square + centre).astype(np.int32), 1)
+    rng = np.random.default_rng(seed)
+    image[rng.integers(34, 46, 20), rng.integers(34, 46, 20)] = 0  # holes: not on the outline
+    assert np.array_equal(quadrilateral(outline(image)), quadrilateral(np.argwhere(image)[:, ::-1]))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 60_000))
+def test_ageing_out_at_the_same_pose_is_a_full_rebinning(seed, now):
+    """A still camera's tracker only drops its stale slots every millisecond; the state must be
+    the one a full re-binning at the same pose leaves, indicator sums bit for bit."""
+    config = ReceiverConfig(CameraModel(346, 260, K))
+    tracker = EdgeTracker(config, make_pose(np.eye(3), [-SIZE / 2, -SIZE / 2, 0.6]), now_us=0)
+    rng = np.random.default_rng(seed)
+    pts = _edge_points(tracker, 40, rng)
+    tracker.push(pts[:, 0], pts[:, 1], np.sort(rng.integers(0, 40_000, len(pts))))
+    rebinned = copy.deepcopy(tracker)
+    rebinned._rebin(rebinned.T_cam_world, now)
+    tracker._age_out(now)
+    for aged, full in zip(tracker._slots, rebinned._slots, strict=True):
+        assert np.array_equal(aged, full)
 
 
 def _tracker_and_points(seed: int, n: int):

@@ -343,6 +343,8 @@ class CellReader:
         self._grid_corners = np.array([[0, 0, 1.0], [n, 0, 1], [0, n, 1], [n, n, 1]])
         self._pixels: tuple[np.ndarray, np.ndarray] | None = None
         """The grid map and the (n, n) inner pixel counts of a still grid last counted."""
+        self._last_box: tuple[object, tuple[int, int, int, int]] = (None, (0, 0, 0, 0))
+        """(pose and padding, box) of the latest ``box`` call."""
 
     def window(self, m: int) -> tuple[int, int]:
         """Time span of the bursts that frame ``m`` reads: the search gate until the clock has
@@ -369,7 +371,14 @@ class CellReader:
 
     def box(self, T_cam_world: np.ndarray, pad_px: int = 4) -> tuple[int, int, int, int]:
         """Raw-pixel box (x0, x1, y0, y1) holding the inner locator at this pose; its border is
-        sampled densely because the lens bends straight sides."""
+        sampled densely because the lens bends straight sides. The last box is kept: a still
+        camera's pose, and with it the box, stays the same for many frames."""
+        key = (T_cam_world.tobytes(), pad_px)
+        if self._last_box[0] != key:
+            self._last_box = (key, self._locator_box(T_cam_world, pad_px))
+        return self._last_box[1]
+
+    def _locator_box(self, T_cam_world: np.ndarray, pad_px: int) -> tuple[int, int, int, int]:
         n, cam = self.n, self.config.camera
         s = np.linspace(0, n, 17)
         zeros, full = np.zeros_like(s), np.full_like(s, n)

@@ -53,6 +53,7 @@ from receiver.pipeline.locate import (
     fit_square,
     latest_burst_us,
     locator_blob,
+    outline,
     quadrilateral,
 )
 from receiver.pipeline.pose import pnp, project_ideal
@@ -180,10 +181,7 @@ def largest_region(heat: np.ndarray, threshold: float) -> np.ndarray:
     lo, hi = np.array([x - pad, y - pad]), np.array([x + w + pad, y + h + pad])
     # The hull of the box's pixels is that of their outlines: far fewer points.
     lo, hi = np.maximum(lo, 0), hi + 1
-    outlines, _ = cv2.findContours(
-        binary[lo[1] : hi[1], lo[0] : hi[0]], cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
-    )
-    return cv2.convexHull(np.concatenate(outlines).reshape(-1, 2) + lo).reshape(-1, 2)
+    return cv2.convexHull(outline(binary[lo[1] : hi[1], lo[0] : hi[0]]) + lo).reshape(-1, 2)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -452,10 +450,9 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
         )
     period = 1e6 / config.blink_hz
     img = burst_image(parts, burst, period, mask)
-    points = np.argwhere(img)[:, ::-1]
-    if len(points) < 16:
+    if np.count_nonzero(img) < 16:
         raise MarkerNotFound("spatial: too few positive events at the blink phase")
-    quad = quadrilateral(points)
+    quad = quadrilateral(outline(img))
     check_quadrilateral(quad, params)
     corners, score = orient(quad, img, config.geometry)
     if score < params.min_orientation_score:
@@ -517,8 +514,8 @@ def _capture_ring(
     """The pose at ``t_us`` that puts the most ring-edge events on the ring's edges, from
     captures started at scaled copies of the locator's quadrilateral (any rotation: the ring is
     square)."""
-    events = events_between(parts, t_us - _CAPTURE_HALF_US, t_us + _CAPTURE_HALF_US)
-    events = events[:: max(1, len(events) // _CAPTURE_SAMPLE)]
+    half = _CAPTURE_HALF_US
+    events = events_between(parts, t_us - half, t_us + half, most=_CAPTURE_SAMPLE)
     cols = to_columns(events, config.camera.undistort_table)
     xu, yu = cols["xu"], cols["yu"]
     centre = quad.mean(axis=0)

@@ -25,7 +25,7 @@ question.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 
 import cv2
 import numba
@@ -89,15 +89,43 @@ class CompensatedBurst:
     """Image flow (vx, vy) in px/ms; zero for a still camera."""
 
 
+@numba.njit(cache=True, nogil=True)
+def _selected(x, y, p, polarity, x0, y0, x1, y1):
+    """Indices of the events of ``polarity`` (0: either) inside the box x0 <= x < x1,
+    y0 <= y < y1, in one pass (numpy's masks take a pass and a temporary per condition)."""
+    out = np.empty(x.shape[0], np.int64)
+    k = 0
+    for i in range(x.shape[0]):
+        if (polarity == 0 or p[i] == polarity) and x0 <= x[i] < x1 and y0 <= y[i] < y1:
+            out[k] = i
+            k += 1
+    return out[:k]
+
+
 def events_between(
-    parts: list[np.ndarray], t0: float, t1: float, polarity: int | None = None
+    parts: list[np.ndarray],
+    t0: float,
+    t1: float,
+    polarity: int | None = None,
+    box: Box | None = None,
+    most: int | None = None,
 ) -> np.ndarray:
-    """The events of the time-ordered parts in [t0, t1), of one ``polarity`` if given, as one
-    array (filtered before they are joined: the window can hold millions)."""
+    """The events of the time-ordered parts in [t0, t1), of one ``polarity`` and inside ``box``
+    if given, as one array; with ``most``, only every k-th of them, k chosen so that about
+    ``most`` remain. The parts are cut, filtered and thinned before they are joined: the window
+    can hold millions."""
     lo, hi = int(np.ceil(t0)), int(np.ceil(t1))
     out = [p[first_at(p["t"], lo) : first_at(p["t"], hi)] for p in parts]
-    if polarity is not None:
-        out = [p[p["p"] == polarity] for p in out]
+    if polarity is not None or box is not None:
+        b = box or Box(0, 0, 1 << 16, 1 << 16)
+        out = [p[_selected(p["x"], p["y"], p["p"], polarity or 0, *astuple(b))] for p in out]
+    if most is not None:
+        k = max(1, sum(len(p) for p in out) // most)
+        thinned, skip = [], 0  # skip: where the next part's first k-th event lies
+        for p in out:
+            thinned.append(p[skip::k])
+            skip = (skip - len(p)) % k
+        out = thinned
     out = [p for p in out if len(p)]
     return np.concatenate(out) if out else parts[0][:0]
 
@@ -203,10 +231,7 @@ def burst_flow(parts: list[np.ndarray], tb: float, period_us: float, box: Box) -
     """Image flow (px/ms) at the burst at ``tb``, from the OFF events of its window in ``box``:
     the data frame only switches cells on, so those come from motion alone."""
     half = HALF_WINDOW * period_us
-    off = events_between(parts, tb - half, tb + half, polarity=-1)
-    off = off[
-        (off["x"] >= box.x0) & (off["x"] < box.x1) & (off["y"] >= box.y0) & (off["y"] < box.y1)
-    ]
+    off = events_between(parts, tb - half, tb + half, polarity=-1, box=box)
     return motion_flow(off, tb, box)
 
 
@@ -232,9 +257,18 @@ def compensated_burst(
     return CompensatedBurst(on[0] - np.maximum(on[1], on[2]) >= 1, box, float(tb), flow)
 
 
+def outline(binary: np.ndarray) -> np.ndarray:
+    """(k, 2) (x, y) of the pixels on the outer outlines of a binary image's blobs: the convex
+    hull of a blob's pixels is that of its outline, a few per cent of them."""
+    contours, _ = cv2.findContours(
+        binary.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
+    )
+    return np.concatenate(contours).reshape(-1, 2) if contours else np.empty((0, 2), np.int32)
+
+
 def locator_blob(image: np.ndarray, cell_px: float) -> np.ndarray:
-    """(k, 2) pixels of the largest blob after joining cells (closing by one cell) and removing
-    lines thinner than two cells (opening)."""
+    """(k, 2) pixels on the outline of the largest blob after joining cells (closing by one
+    cell) and removing lines thinner than two cells (opening)."""
     small = np.ones((max(3, round(cell_px) | 1),) * 2, np.uint8)
     large = np.ones((max(3, round(2 * cell_px) | 1),) * 2, np.uint8)
     blob = cv2.morphologyEx(image.astype(np.uint8), cv2.MORPH_CLOSE, small)
@@ -243,7 +277,7 @@ def locator_blob(image: np.ndarray, cell_px: float) -> np.ndarray:
     if n < 2:
         raise MarkerNotFound("spatial: nothing brightens with the bursts as a solid blob")
     biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return np.argwhere(labels == biggest)[:, ::-1]
+    return outline(labels == biggest)
 
 
 def _square_outline(half: float, per_side: int = 24) -> np.ndarray:
@@ -318,6 +352,9 @@ def _band_mean(lit, hk, c, s, band):
 def quadrilateral(points: np.ndarray) -> np.ndarray:
     """(4, 2) float corners, clockwise on screen (y down), approximating a convex point set."""
     hull = cv2.convexHull(points.astype(np.float32).reshape(-1, 1, 2))
+    # Start at the largest (x, y), as OpenCV does for points in row order: the corners (which
+    # the polygon fit's start sways) then do not depend on being given all pixels or outlines.
+    hull = np.roll(hull, -np.lexsort((hull[:, 0, 1], hull[:, 0, 0]))[-1], axis=0)
     perimeter = cv2.arcLength(hull, True)
     for eps in np.linspace(0.01, 0.1, 19):
         poly = cv2.approxPolyDP(hull, eps * perimeter, True).reshape(-1, 2)

@@ -34,9 +34,27 @@ def plane_homography(T_cam_world: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 def project_ideal(T_cam_world: np.ndarray, K: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Ideal pixels (..., 2) of marker points (..., 3); NaN behind the camera."""
-    pc = points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-    z = np.where(pc[..., 2:3] > 1e-6, pc[..., 2:3], np.nan)
-    return pc[..., :2] / z * K[[0, 1], [0, 1]] + K[:2, 2]
+    flat = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+    T = np.ascontiguousarray(T_cam_world, np.float64)
+    return _project(T, np.ascontiguousarray(K, np.float64), flat).reshape(*points.shape[:-1], 2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _project(T, K, points):
+    """``project_ideal`` of (n, 3) points, compiled: the receiver projects a few marker points
+    several times per millisecond of events, where numpy's per-call overhead outweighs the
+    arithmetic tenfold."""
+    out = np.empty((points.shape[0], 2))
+    for i in range(points.shape[0]):
+        P = points[i]
+        X = T[0, 0] * P[0] + T[0, 1] * P[1] + T[0, 2] * P[2] + T[0, 3]
+        Y = T[1, 0] * P[0] + T[1, 1] * P[1] + T[1, 2] * P[2] + T[1, 3]
+        Z = T[2, 0] * P[0] + T[2, 1] * P[1] + T[2, 2] * P[2] + T[2, 3]
+        if Z > 1e-6:
+            out[i, 0], out[i, 1] = X / Z * K[0, 0] + K[0, 2], Y / Z * K[1, 1] + K[1, 2]
+        else:
+            out[i, 0] = out[i, 1] = np.nan
+    return out
 
 
 # --- compiled LM --------------------------------------------------------------------------------
@@ -50,72 +68,111 @@ def _so3_exp(w):
 
 
 @numba.njit(cache=True, nogil=True)
-def _project_with_jacobian(P, R, t, k):
-    """Ideal pixel of world point P and its 2x6 Jacobian for Pc' = exp(w) Pc + v."""
-    pc = R @ P + t
-    X, Y, Z = pc[0], pc[1], pc[2]
+def _project_with_jacobian(P, R, t, k, uv, J):
+    """Ideal pixel ``uv`` of world point P and its 2x6 Jacobian ``J`` for Pc' = exp(w) Pc + v,
+    written into the given arrays (scalar code: small-array products allocate and call BLAS)."""
+    X = R[0, 0] * P[0] + R[0, 1] * P[1] + R[0, 2] * P[2] + t[0]
+    Y = R[1, 0] * P[0] + R[1, 1] * P[1] + R[1, 2] * P[2] + t[1]
+    Z = R[2, 0] * P[0] + R[2, 1] * P[1] + R[2, 2] * P[2] + t[2]
     iz = 1.0 / Z
-    uv = np.array([k[0] * X * iz + k[2], k[1] * Y * iz + k[3]])
-    duv = np.array([[k[0] * iz, 0.0, -k[0] * X * iz * iz], [0.0, k[1] * iz, -k[1] * Y * iz * iz]])
-    dpc = np.zeros((3, 6))
-    dpc[0, 1], dpc[0, 2], dpc[1, 0], dpc[1, 2], dpc[2, 0], dpc[2, 1] = Z, -Y, -Z, X, Y, -X
-    dpc[0, 3] = dpc[1, 4] = dpc[2, 5] = 1.0
-    return uv, duv @ dpc
+    uv[0], uv[1] = k[0] * X * iz + k[2], k[1] * Y * iz + k[3]
+    fx, fy = k[0] * iz, k[1] * iz
+    gx, gy = -k[0] * X * iz * iz, -k[1] * Y * iz * iz
+    # d(u, v)/d(X, Y, Z) times dPc/d(w, v): rotation columns (0, Z, -Y), (-Z, 0, X), (Y, -X, 0).
+    J[0, 0], J[0, 1], J[0, 2] = gx * Y, fx * Z - gx * X, -fx * Y
+    J[1, 0], J[1, 1], J[1, 2] = -fy * Z + gy * Y, -gy * X, fy * X
+    J[0, 3], J[0, 4], J[0, 5] = fx, 0.0, gx
+    J[1, 3], J[1, 4], J[1, 5] = 0.0, fy, gy
 
 
 @numba.njit(cache=True, nogil=True)
-def _residuals(R, t, k, pts, edge, ends, huber, want_jac):
-    """Signed distances of points to the lines of their projected edges; Huber-weighted normal
-    equations when ``want_jac``."""
-    n = pts.shape[0]
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
+def _residuals(R, t, k, pts, edge, ends, huber):
+    """Robust cost of the points' signed distances to the lines of their projected edges, and
+    the Huber-weighted normal equations (H, g).
+
+    A point's Jacobian is linear in its offset q = (1, u, v) from its edge's projected start:
+    J = M_e q. So the points only add up, per edge, the weighted moments S_e = sum w q q^T and
+    h_e = sum w r q, and then H = sum_e M_e S_e M_e^T and g = sum_e M_e h_e: a few flops per
+    point instead of the 27 products of J J^T (hand-held tracking solves a pose every ms)."""
+    m = ends.shape[0]
+    a_px = np.empty((m, 2))
+    d = np.empty((m, 2))
+    length = np.empty(m)
+    M = np.empty((m, 6, 3))
+    b_px, Ja, Jb = np.empty(2), np.empty((2, 6)), np.empty((2, 6))
+    for e in range(m):
+        _project_with_jacobian(ends[e, 0], R, t, k, a_px[e], Ja)
+        _project_with_jacobian(ends[e, 1], R, t, k, b_px, Jb)
+        dx, dy = b_px[0] - a_px[e, 0], b_px[1] - a_px[e, 1]
+        d[e, 0], d[e, 1] = dx, dy
+        L = np.sqrt(dx * dx + dy * dy) + 1e-12
+        length[e] = L
+        # d r / d (start, end) of the point at q, split into its parts along 1, u and v
+        # (moving both ends alike moves the line: only the constant part sees it).
+        i1, i3 = 1.0 / L, 1.0 / (L * L * L)
+        for j in range(6):
+            d0, d1 = Ja[0, j] - Jb[0, j], Ja[1, j] - Jb[1, j]
+            M[e, j, 0] = dy * i1 * Ja[0, j] - dx * i1 * Ja[1, j]
+            M[e, j, 1] = -dx * dy * i3 * d0 + (i1 - dy * dy * i3) * d1
+            M[e, j, 2] = (dx * dx * i3 - i1) * d0 + dx * dy * i3 * d1
+    S = np.zeros((m, 3, 3))
+    h = np.zeros((m, 3))
     cost = 0.0
-    a_px = np.empty((ends.shape[0], 2))
-    b_px = np.empty((ends.shape[0], 2))
-    Ja = np.empty((ends.shape[0], 2, 6))
-    Jb = np.empty((ends.shape[0], 2, 6))
-    length, length3 = np.empty(ends.shape[0]), np.empty(ends.shape[0])  # per edge, not point
-    J = np.empty(6)
-    for e in range(ends.shape[0]):
-        a_px[e], Ja[e] = _project_with_jacobian(ends[e, 0], R, t, k)
-        b_px[e], Jb[e] = _project_with_jacobian(ends[e, 1], R, t, k)
-        dx, dy = b_px[e, 0] - a_px[e, 0], b_px[e, 1] - a_px[e, 1]
-        length[e] = np.sqrt(dx * dx + dy * dy) + 1e-12
-        length3[e] = length[e] * length[e] * length[e]
-    for i in range(n):
-        e = edge[i]
-        ax, ay, bx, by = a_px[e, 0], a_px[e, 1], b_px[e, 0], b_px[e, 1]
-        px, py = pts[i, 0], pts[i, 1]
-        dx, dy = bx - ax, by - ay
-        L = length[e]
-        c = dx * (py - ay) - dy * (px - ax)
-        r = c / L
+    # The moments add up in scalars while the points stay on one edge (the clusters come edge
+    # by edge): sums in memory would chain every point's additions through a store.
+    e = -1
+    w0 = wu0 = wv0 = wuu = wuv = wvv = wr0 = wru = wrv = 0.0
+    for i in range(pts.shape[0] + 1):
+        if i == pts.shape[0] or edge[i] != e:
+            if e >= 0:
+                S[e, 0, 0] += w0
+                S[e, 0, 1] += wu0
+                S[e, 0, 2] += wv0
+                S[e, 1, 1] += wuu
+                S[e, 1, 2] += wuv
+                S[e, 2, 2] += wvv
+                h[e, 0] += wr0
+                h[e, 1] += wru
+                h[e, 2] += wrv
+            if i == pts.shape[0]:
+                break
+            e = edge[i]
+            w0 = wu0 = wv0 = wuu = wuv = wvv = wr0 = wru = wrv = 0.0
+        u, v = pts[i, 0] - a_px[e, 0], pts[i, 1] - a_px[e, 1]
+        r = (d[e, 0] * v - d[e, 1] * u) / length[e]
         ar = abs(r)
         w = 1.0 if ar <= huber else huber / ar
         cost += 0.5 * r * r if ar <= huber else huber * (ar - 0.5 * huber)
-        if want_jac:
-            # Scalar loops, not small-array expressions: those allocate per point.
-            s = c / length3[e]
-            dra0, dra1 = (by - py) / L + s * dx, (px - bx) / L + s * dy
-            drb0, drb1 = (py - ay) / L - s * dx, -(px - ax) / L - s * dy
-            for j in range(6):
-                J[j] = (dra0 * Ja[e, 0, j] + dra1 * Ja[e, 1, j]) + (
-                    drb0 * Jb[e, 0, j] + drb1 * Jb[e, 1, j]
-                )
-            for j in range(6):
-                g[j] += w * r * J[j]
-                for m in range(j, 6):
-                    H[j, m] += w * (J[j] * J[m])
+        wu, wv, wr = w * u, w * v, w * r
+        w0 += w
+        wu0 += wu
+        wv0 += wv
+        wuu += wu * u
+        wuv += wu * v
+        wvv += wv * v
+        wr0 += wr
+        wru += wr * u
+        wrv += wr * v
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    MS = np.empty(3)
+    for e in range(m):
+        S[e, 1, 0], S[e, 2, 0], S[e, 2, 1] = S[e, 0, 1], S[e, 0, 2], S[e, 1, 2]
+        for j in range(6):
+            for c in range(3):
+                MS[c] = M[e, j, 0] * S[e, 0, c] + M[e, j, 1] * S[e, 1, c] + M[e, j, 2] * S[e, 2, c]
+            for i in range(j, 6):
+                H[j, i] += MS[0] * M[e, i, 0] + MS[1] * M[e, i, 1] + MS[2] * M[e, i, 2]
+            g[j] += M[e, j, 0] * h[e, 0] + M[e, j, 1] * h[e, 1] + M[e, j, 2] * h[e, 2]
     for j in range(6):  # the lower triangle mirrors the upper one
-        for m in range(j):
-            H[j, m] = H[m, j]
+        for i in range(j):
+            H[j, i] = H[i, j]
     return cost, H, g
 
 
 @numba.njit(cache=True, nogil=True)
 def _lm(R, t, k, pts, edge, ends, huber, iterations):
-    cost, H, g = _residuals(R, t, k, pts, edge, ends, huber, True)
+    cost, H, g = _residuals(R, t, k, pts, edge, ends, huber)
     lam = 1e-3
     for _ in range(iterations):
         A = H + lam * np.diag(np.diag(H) + 1e-9)
@@ -123,7 +180,7 @@ def _lm(R, t, k, pts, edge, ends, huber, iterations):
         dR = _so3_exp(step[:3])
         R_new, t_new = dR @ R, dR @ t + step[3:]
         # One pass for the cost and the next normal equations: most steps are taken.
-        new_cost, H_new, g_new = _residuals(R_new, t_new, k, pts, edge, ends, huber, True)
+        new_cost, H_new, g_new = _residuals(R_new, t_new, k, pts, edge, ends, huber)
         if new_cost < cost:
             R, t, cost, H, g = R_new, t_new, new_cost, H_new, g_new
             lam = max(lam / 10, 1e-7)

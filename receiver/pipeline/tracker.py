@@ -82,6 +82,18 @@ def _capture_points(xu, yu, a, b, gate, deep_px, centre):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _bin(e, s, px, py, t, d, sx, sy, st, sd, sum_d, n_valid):
+    """Put an event at distance ``d`` into bin ``s`` of edge ``e``, replacing the bin's older one
+    in the cluster's count and distance sum."""
+    if st[e, s] >= 0:
+        sum_d[e] -= sd[e, s]
+    else:
+        n_valid[e] += 1
+    sx[e, s], sy[e, s], st[e, s], sd[e, s] = px, py, t, d
+    sum_d[e] += d
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _late(sum_d, n_valid, cap, gate, min_fill):
     """An edge's latency indicator fired: its cluster is filled enough and lies, on average,
     more than half the gate off the edge."""
@@ -142,12 +154,7 @@ def _assign(
                 continue
             on = True
             s = min(int(w * cap[e]), cap[e] - 1)
-            if st[e, s] >= 0:
-                sum_d[e] -= sd[e, s]
-            else:
-                n_valid[e] += 1
-            sx[e, s], sy[e, s], st[e, s], sd[e, s] = px, py, t[i], d
-            sum_d[e] += d
+            _bin(e, s, px, py, t[i], d, sx, sy, st, sd, sum_d, n_valid)
             now_late = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
             n_late += now_late - late[e]
             late[e] = now_late
@@ -170,38 +177,36 @@ def _assign(
 
 
 @numba.njit(cache=True, nogil=True)
-def _reassign(old_x, old_y, old_t, since_us, a, b, gate, band, cap, sx, sy, st, sd, sum_d, n_valid):
+def _reassign(old_x, old_y, old_t, since_us, a, b, gate, cap, sx, sy, st, sd, sum_d, n_valid):
     """Move the old clusters' events not older than ``since_us`` into the new (empty) clusters,
     each edge's oldest first so that the newest wins its bin, and each only onto the edge it was
-    on. The re-binned events were counted in the fit already."""
-    unused = np.zeros(3, np.int64)
+    on: ``_assign``'s binning for one edge, without its indicators and fit counts (the re-binned
+    events were counted in the fit already). Runs at every pose update."""
     for e in range(old_t.shape[0]):
         keep = np.flatnonzero(old_t[e] >= since_us)
-        if keep.shape[0] == 0:
-            continue
-        order = keep[np.argsort(old_t[e][keep], kind="mergesort")]
-        one = slice(e, e + 1)
-        _assign(
-            old_x[e][order],
-            old_y[e][order],
-            old_t[e][order],
-            0,
-            a[one],
-            b[one],
-            gate[one],
-            band[one],
-            cap[one],
-            sx[one],
-            sy[one],
-            st[one],
-            sd[one],
-            sum_d[one],
-            n_valid[one],
-            unused,
-            1 << 62,
-            1 << 62,
-            _MIN_FILL,
-        )
+        for i in keep[np.argsort(old_t[e][keep], kind="mergesort")]:
+            px, py = old_x[e, i], old_y[e, i]
+            d, w = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+            if d > gate[e]:
+                continue
+            s = min(int(w * cap[e]), cap[e] - 1)
+            _bin(e, s, px, py, old_t[e, i], d, sx, sy, st, sd, sum_d, n_valid)
+
+
+@numba.njit(cache=True, nogil=True)
+def _age_out(since_us, sx, sy, st, sd, sum_d, n_valid):
+    """Empty the bins older than ``since_us`` in place: ``_reassign`` onto the same edges, where
+    every kept event lands in its own bin again. The sums are recomputed in the same (time)
+    order, so that the indicators match a full re-binning bit for bit."""
+    for e in range(st.shape[0]):
+        keep = np.flatnonzero(st[e] >= since_us)
+        total = 0.0
+        for i in keep[np.argsort(st[e][keep], kind="mergesort")]:
+            total += sd[e, i]
+        for i in range(st.shape[1]):
+            if st[e, i] < since_us:
+                sx[e, i], sy[e, i], st[e, i], sd[e, i] = 0.0, 0.0, -1, 0.0
+        sum_d[e], n_valid[e] = total, keep.shape[0]
 
 
 @dataclass
@@ -265,7 +270,14 @@ class EdgeTracker:
         if old is None:
             return
         since = max(0, now_us - self.config.tracker.max_age_us)
-        _reassign(old[0], old[1], old[2], since, a, b, self._gate, self._band, cap, *self._slots)
+        _reassign(old[0], old[1], old[2], since, a, b, self._gate, cap, *self._slots)
+
+    def _age_out(self, now_us: int) -> None:
+        """``_rebin`` at the current pose (whose edges the clusters already follow): only the
+        stale slots leave. A still camera's noise asks for this every millisecond."""
+        since = max(0, now_us - self.config.tracker.max_age_us)
+        _age_out(since, *self._slots)
+        self._last_rebin_us = now_us
 
     # --- start ---------------------------------------------------------------------------------
     def capture(self, xu: np.ndarray, yu: np.ndarray, now_us: int) -> bool:
@@ -327,7 +339,7 @@ class EdgeTracker:
                 if update is not None:
                     updates.append(update)
             elif now - self._last_rebin_us >= q.max_age_us // 2:
-                self._rebin(self.T_cam_world, now)  # age stale slots out of the indicators
+                self._age_out(now)  # stale slots leave the indicators
             start = stop
         if self._fit[0] >= q.fit_min_events:
             self.fit_ratio = float(self._fit[1] / self._fit[0])
@@ -343,7 +355,7 @@ class EdgeTracker:
         fresh = st >= max(0, now_us - self.config.tracker.max_age_us)  # -1: empty bin
         supported = fresh.sum(axis=1) >= np.maximum(3, _MIN_FILL * self._cap)
         if supported.sum() < _MIN_EDGES:
-            self._rebin(self.T_cam_world, now_us)
+            self._age_out(now_us)
             return None
         edge = np.nonzero(fresh)[0]
         pts = np.stack([sx[fresh], sy[fresh]], 1)
