@@ -380,10 +380,13 @@ def test_a_lock_a_quarter_turn_off_is_dropped_within_a_few_frames(
     drops = [c for c in changes if c.state == DETECTING]
     failures = run["stats"].detection_failures
     assert locks or any("'L'" in reason for reason in failures), dict(failures)
-    assert len(drops) == len(locks), "a quarter-turned lock stood to the clip's end"
-    for lock, drop in zip(locks, drops, strict=True):
+    within_us = (config.decoder.turn_frames + 1) * config.frame_us
+    judged = [c for c in locks if c.t_us + within_us <= slow_clip[0].duration_us]
+    assert judged or not locks, "no lock early enough in the clip to judge"
+    assert len(drops) >= len(judged), "a quarter-turned lock stood to the clip's end"
+    for lock, drop in zip(judged, drops[: len(judged)], strict=True):
         assert "'L' does not read" in drop.reason
-        assert drop.t_us - lock.t_us <= (config.decoder.turn_frames + 1) * config.frame_us
+        assert drop.t_us - lock.t_us <= within_us
     accepted = sum(f.accepted for f in run["frames"])
     assert accepted <= config.decoder.turn_frames * len(locks)
 
