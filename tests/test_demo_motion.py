@@ -1,7 +1,4 @@
-"""``make demo`` with the hand-held virtual camera: the dashboard sees the pose move.
-
-Slow (a simulation slower than real time takes a core for the whole test): ``pytest -m slow``.
-"""
+"""``make demo``, whose virtual camera is hand-held: the dashboard sees the pose move."""
 
 from __future__ import annotations
 
@@ -12,6 +9,8 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -20,10 +19,9 @@ from websockets.sync.client import connect
 
 from receiver.virtual_camera import DISTANCE_M
 
-pytestmark = pytest.mark.slow
-
 ROOT = Path(__file__).resolve().parent.parent
 MOVING_WITHIN_S = 30.0
+DECODED_WITHIN_S = 30.0
 MIN_TRAVEL_M = 0.01
 
 
@@ -59,10 +57,11 @@ def dashboard_poses(port: int, first_within_s: float, then_s: float) -> np.ndarr
     return np.array(positions).reshape(-1, 3)
 
 
-def test_demo_with_a_hand_held_camera_shows_the_pose_moving(tmp_path) -> None:
+def test_the_demo_shows_the_message_decoded_and_the_pose_moving(tmp_path) -> None:
     port = free_port()
+    started = datetime.now(UTC)
     demo = subprocess.Popen(
-        [sys.executable, "-m", "server.demo", "--motion", "handheld"],
+        [sys.executable, "-m", "server.demo"],
         cwd=ROOT,
         env={**os.environ, "EVENTOCC_PORT": str(port), "EVENTOCC_DATA_DIR": str(tmp_path)},
         stdout=subprocess.DEVNULL,
@@ -71,6 +70,8 @@ def test_demo_with_a_hand_held_camera_shows_the_pose_moving(tmp_path) -> None:
     )
     try:
         positions = dashboard_poses(port, first_within_s=60.0, then_s=MOVING_WITHIN_S)
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/receptions") as response:
+            receptions = json.load(response)["receptions"]
     finally:
         demo.send_signal(signal.SIGINT)
         _, log = demo.communicate(timeout=60)
@@ -79,3 +80,7 @@ def test_demo_with_a_hand_held_camera_shows_the_pose_moving(tmp_path) -> None:
     assert travel >= MIN_TRAVEL_M, f"the camera stood still ({travel * 100:.1f} cm):\n{log}"
     distance = np.linalg.norm(positions, axis=1)
     assert np.median(distance) == pytest.approx(DISTANCE_M, rel=0.2), "as far as it stands"
+    verified = [r for r in receptions if r["message_id"] is not None]
+    assert verified, f"no verified message:\n{log}"
+    took = datetime.fromisoformat(verified[0]["received"]) - started
+    assert took.total_seconds() <= DECODED_WITHIN_S, f"decoded after {took}"

@@ -63,6 +63,8 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
             "receive",
             "--source",
             "sim:",
+            "--motion",
+            "static",  # a still camera keeps up with real time: the goodput checked is the link's
             "--server",
             base_url,
             "--out",

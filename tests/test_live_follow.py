@@ -48,6 +48,7 @@ class DaemonProcess:
 
     def __init__(self, base_url: str, out: Path, *options: str) -> None:
         command = [sys.executable, "-m", "receiver.cli", "receive", "--source", "sim:"]
+        command += ["--motion", "static"]  # quick to lock on each stream it follows
         command += ["--server", base_url, "--out", str(out), *options]
         self.process = subprocess.Popen(
             command,
