@@ -64,11 +64,11 @@ from receiver.sim.sensor import (
 )
 
 MAX_STEP_PX = 0.5
+"""Largest image displacement of the screen within one sub-step (ESIM's flow-based step)."""
 BLOCK_US = 40_000
 """How far ahead a pixel is rendered at each visit: a few display refreshes."""
 _STAGGER_RUN = 64
 """Pixels in a row that share their block phase (neighbours in memory visited together)."""
-"""Largest image displacement of the screen within one sub-step (ESIM's flow-based step)."""
 _BOX_MARGIN_PX = 4
 _SETTLED_TAU = 6.0
 """Time constants after which the ladder stops (e^-6: 0.25 % of the step left)."""
@@ -481,12 +481,12 @@ def _moving_window(
     ``path``, which spans ``q`` windows from the start of window ``w``, window k ending at
     sub-step ``ends[k + 1]`` (``blocks`` = (w, q, last): the recording ends with window
     ``last``). A pixel rendered up to ``done`` past the first window is skipped; the others are
-    rendered to the end of their own block (``q`` windows, staggered by runs of pixels so that each
-    window renders a ``1/q`` share) or of the recording. ``bounds``: (reach, step),
-    upper bounds on the marker plane of the distance from a pixel's centre point to its
-    footprint samples and of how far that point moves in one sub-step. ``closed_form=False``
-    samples every sub-step (the reference the runs are tested against). Returns (next pixel,
-    count), stopping early when the output is full."""
+    rendered to the end of their own block (``q`` windows, staggered by runs of pixels so that
+    each window renders a ``1/q`` share) or of the recording. ``bounds``: (reach, step), upper
+    bounds on the marker plane of the distance from a pixel's centre point to its footprint
+    samples and of how far that point moves in one sub-step. ``closed_form=False`` samples
+    every sub-step (the reference the runs are tested against). Returns (next pixel, count),
+    stopping early when the output is full."""
     x0, x1, y0, y1 = box
     reach_m, step_m = bounds
     w, q, last = blocks
