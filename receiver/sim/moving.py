@@ -693,7 +693,7 @@ class MovingRenderer:
     def irradiance_now(self) -> np.ndarray:
         return np.exp(self.state[LEVEL])
 
-    def substeps(self, t0: float, t1: float, windows: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def substeps(self, t0: float, t1: float, windows: int) -> tuple[np.ndarray, np.ndarray]:
         """Step boundaries in [t0, t1], equal within each of its ``windows`` equal parts and
         keeping the screen's image motion per step small there, and the index of the boundary
         that ends each part (and of t0 first)."""
