@@ -13,7 +13,16 @@ from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.events import EVENT_DTYPE, concat
 from receiver.poses import make_pose
-from receiver.sim import Display, HandHeldMotion, Scene, SensorModel, StaticMotion, moving, simulate
+from receiver.sim import (
+    Display,
+    HandHeldMotion,
+    Scene,
+    SensorModel,
+    StaticMotion,
+    moving,
+    render,
+    simulate,
+)
 from receiver.sim.motion import image_box
 from receiver.sim.sensor import BackgroundNoise, to_events
 
@@ -124,3 +133,15 @@ def test_pwm_with_a_moving_camera_is_refused_with_a_clear_message():
     scene = _scene(display=Display(pwm_hz=240.0), motion=HandHeldMotion(distance_m=3.0))
     with pytest.raises(ValueError, match="still cameras only"):
         list(simulate(scene, 0.01))
+
+
+def test_still_pixels_skip_resting_refreshes_with_the_events_of_rendering_every_one(monkeypatch):
+    """Thresholds of exactly 1 ln unit (clipped) land a transition's tail exactly on a threshold:
+    its event must still fire as when every refresh is rendered."""
+    coarse = replace(SensorModel.preset("ideal"), threshold_on=1.0, threshold_off=1.0)
+    scene = _scene(encoder=StreamEncoder(MESSAGE, profile="robust", cells=16), sensor=coarse)
+    skipping = concat(simulate(scene, 0.2))
+    monkeypatch.setattr(render.StaticRenderer, "skip_resting", False)
+    every = concat(simulate(scene, 0.2))
+    assert len(skipping) > 1000
+    assert np.array_equal(skipping, every)

@@ -10,8 +10,10 @@ its screen row, each cell's luminance is an exponential towards the new level, s
 irradiance is ``a + b_rise exp(-u / tau_rise) + b_fall exp(-u / tau_fall)``: one exponential
 (solved exactly) unless rising and falling cells with different time constants share the pixel
 (then sampled on a geometric ladder). A backlight PWM gates that light on and off. Only the
-pixels that see cells are visited, one whole refresh at a time: a pixel is touched once per
-refresh, not once per window, and the events it fires past the window are held back by the caller.
+pixels that see cells are visited, one whole refresh at a time, and only at the refreshes where
+one of their cells changes (most cells hold their light from one refresh to the next): a pixel is
+touched at most once per refresh, not once per window, and the events it fires past the window
+are held back by the caller.
 """
 
 from __future__ import annotations
@@ -152,6 +154,8 @@ def _static_window(
     k_first,
     target,
     at_switch,
+    switching,
+    skip,
     start_refresh,
     period,
     scan,
@@ -159,25 +163,40 @@ def _static_window(
     tau_fall,
     pwm,
     next_switch,
+    at_rest,
     state,
     refractory,
     out,
 ):
     """Events of the still-camera pixels ``j_start ..`` from their next display switch on, one
     whole refresh at a time, for every switch before ``t1`` (events may run up to a refresh
-    period past ``t1``: the caller holds them back). Returns (next pixel, count): stops early,
-    with that pixel untouched, when the output is full."""
+    period past ``t1``: the caller holds them back). ``switching`` (refresh, cell): whether the
+    cell's level at the switch is off its target (it moves during that refresh). With ``skip``,
+    a refresh in which none of a pixel's cells moves is rendered once, which puts its level
+    exactly on their light (a transition whose tail ends on a threshold fires there, as when
+    every refresh is rendered), and skipped after that (``at_rest``). Returns (next pixel,
+    count): stops early, with that pixel untouched, when the output is full."""
     n = 0
     nk = target.shape[0]
     for j in range(j_start, pix_v.shape[0]):
         if next_switch[j] >= t1:
             continue  # this pixel's light is settled or already rendered beyond t1
-        saved = (state[REF, j], state[LAST, j], state[LEVEL, j], next_switch[j])
+        saved = (state[REF, j], state[LAST, j], state[LEVEL, j], next_switch[j], at_rest[j])
         n_before = n
         while next_switch[j] < t1:
             ts = next_switch[j]
             k = start_refresh + round((ts - pix_v[j] * scan) / period)
             kk = min(max(k - k_first, 0), nk - 1)
+            next_switch[j] = ts + period
+            if skip:
+                for q in range(ptr[j], ptr[j + 1]):
+                    if switching[kk, cells[q]]:
+                        at_rest[j] = False
+                        break
+                else:  # every cell holds its light
+                    if at_rest[j]:
+                        continue
+                    at_rest[j] = True
             a = pix_const[j]
             b_rise = 0.0
             b_fall = 0.0
@@ -187,7 +206,7 @@ def _static_window(
                 lum_end = target[kk, c]
                 lum_start = at_switch[kk, c]
                 a += w * lum_end
-                if abs(lum_start - lum_end) <= SETTLED_CONTRAST * lum_end:
+                if not switching[kk, c]:
                     continue
                 if lum_end > lum_start:
                     if tau_rise > 0:
@@ -211,9 +230,8 @@ def _static_window(
                 out,
                 n,
             )
-            next_switch[j] = ts + period
         if n > out.shape[0]:
-            state[REF, j], state[LAST, j], state[LEVEL, j], next_switch[j] = saved
+            state[REF, j], state[LAST, j], state[LEVEL, j], next_switch[j], at_rest[j] = saved
             return j, n_before
     return pix_v.shape[0], n
 
@@ -395,6 +413,10 @@ def _cross_two_exponentials(
 class StaticRenderer:
     """Signal events of a still camera: each pixel's cell mix is fixed, its state compact."""
 
+    skip_resting = True
+    """Skip the refreshes in which none of a pixel's cells moves, once its level rests on their
+    light (False: render every refresh of every pixel, the slow reference)."""
+
     def __init__(
         self,
         pix_index: np.ndarray,
@@ -440,6 +462,9 @@ class StaticRenderer:
         self.refractory = float(refractory_us)
         # Refresh start_refresh reaches each pixel's screen row at its scan-out delay.
         self.next_switch = self.pix_v * d.scan_us
+        self.at_rest = np.zeros(len(self.pix_index), bool)
+        """Whether a pixel's level is exactly the light its cells hold (set by the first refresh
+        in which none of them changes; until one does, its refreshes have nothing to render)."""
         self._out = EventBuffer()
 
     def irradiance_now(self) -> np.ndarray:
@@ -467,12 +492,15 @@ class StaticRenderer:
                 win.k_first,
                 win.target,
                 win.at_switch,
+                np.abs(win.at_switch - win.target) > SETTLED_CONTRAST * win.target,
+                self.skip_resting and self._pwm[0] <= 0,  # a backlight gates resting cells too
                 tl.start_refresh,
                 d.period_us,
                 d.scan_us,
                 *self._tau,
                 self._pwm,
                 self.next_switch,
+                self.at_rest,
                 self.state,
                 self.refractory,
                 out,
