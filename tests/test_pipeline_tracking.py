@@ -3,6 +3,8 @@ runs on the virtual event camera against its ground truth."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -122,6 +124,27 @@ def test_fit_ratio_drops_when_events_miss_the_edges():
     ring_px = tracker._ring_px(*tracker._project_edges(truth)).min()
     tracker.push(*_edge_events(truth, 2000, n_per_edge=100, offset_px=0.8 * ring_px, seed=3))
     assert tracker.fit_ratio < 0.5
+    assert list(tracker.fit_history) == pytest.approx([1.0, tracker.fit_ratio], abs=0.1)
+
+
+def test_tracking_is_lost_when_the_fit_ratio_stays_low_not_at_one_dip():
+    """One judgement of events off the edges is how a correct pose looks for a moment under slow
+    motion (few edge events, the blinking locator beside the ring); a slipped pose stays low."""
+    config = replace(CONFIG, tracker=replace(CONFIG.tracker, min_fit_ratio=0.5, fit_judgements=3))
+    truth = invert(_view())
+    rx = Receiver(config)
+    rx._tracker = tracker = EdgeTracker(config, truth.copy())
+    ring_px = tracker._ring_px(*tracker._project_edges(truth)).min()
+
+    def judge(t0_us: int, on_edges: bool) -> str | None:
+        offset = 0.0 if on_edges else 0.5 * ring_px  # beyond the gates of both ring sides
+        tracker.push(*_edge_events(truth, t0_us, n_per_edge=100, offset_px=offset, seed=t0_us))
+        return rx._off_edges()
+
+    one_dip = [judge(2000 * k, on) for k, on in enumerate([True, True, False, True, True])]
+    assert one_dip == [None] * 5
+    assert judge(10_000, False) is None
+    assert judge(12_000, False) == "only 0% of the events near the ring lie on its edges"
 
 
 # --- on the virtual camera -------------------------------------------------------------------

@@ -318,8 +318,11 @@ class Receiver:
         return None
 
     def _off_edges(self) -> str | None:
-        ratio = self._tracker.fit_ratio
-        if ratio is not None and ratio < self.config.tracker.min_fit_ratio:
+        history = self._tracker.fit_history
+        if len(history) < history.maxlen:
+            return None
+        ratio = float(np.median(history))
+        if ratio < self.config.tracker.min_fit_ratio:
             return f"only {ratio:.0%} of the events near the ring lie on its edges"
         return None
 

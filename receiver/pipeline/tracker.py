@@ -16,6 +16,7 @@ shrinking gates (``EdgeTracker.capture``), since a detection under motion is a f
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numba
@@ -234,6 +235,8 @@ class EdgeTracker:
         self._fit = np.zeros(3, np.int64)
         self.fit_ratio: float | None = None
         """Share of the latest band events that lie on an edge; None until enough were seen."""
+        self.fit_history: deque[float] = deque(maxlen=config.tracker.fit_judgements)
+        """The latest ``fit_judgements`` fit ratios, oldest first."""
         self._rebin(T_cam_world, now_us)
 
     # --- geometry of the current pose ----------------------------------------------------------
@@ -343,6 +346,7 @@ class EdgeTracker:
             start = stop
         if self._fit[0] >= q.fit_min_events:
             self.fit_ratio = float(self._fit[1] / self._fit[0])
+            self.fit_history.append(self.fit_ratio)
             self._fit[:2] = 0
         return updates
 
