@@ -71,8 +71,9 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
 ## Where we fall short of the paper, and why
 
 - Throughput: `--quick` stops at N = 32 and 60 Hz, far below the paper's 114 kbit/s at
-  N = 80; the full run and `python -m bench.receiver` measure N = 80. Our cells are smaller
-  than the paper's from N = 32 on (see above), which costs BER at large N.
+  N = 80; the `standard` scale (the paper's sensor, one 2 s clip per point) and
+  `python -m bench.receiver` measure N = 80 and beyond. Our cells are smaller than the paper's
+  from N = 32 on (see above), which costs BER at large N.
 - `robust` and `fast` pay for joining at any time and surviving lost frames: at N = 16 a
   frame's header, CRC and Reed-Solomon parity leave 96 of its 256 bits for data, so their
   goodput at small N is well under the `paper` profile's.
