@@ -233,11 +233,14 @@ class EdgeTracker:
         self._last_rebin_us = now_us
         self._slots = None
         self._fit = np.zeros(3, np.int64)
-        self.fit_ratio: float | None = None
-        """Share of the latest band events that lie on an edge; None until enough were seen."""
         self.fit_history: deque[float] = deque(maxlen=config.tracker.fit_judgements)
         """The latest ``fit_judgements`` fit ratios, oldest first."""
         self._rebin(T_cam_world, now_us)
+
+    @property
+    def fit_ratio(self) -> float | None:
+        """Share of the latest band events that lie on an edge; None until enough were seen."""
+        return self.fit_history[-1] if self.fit_history else None
 
     # --- geometry of the current pose ----------------------------------------------------------
     def _project_edges(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -345,8 +348,7 @@ class EdgeTracker:
                 self._age_out(now)  # stale slots leave the indicators
             start = stop
         if self._fit[0] >= q.fit_min_events:
-            self.fit_ratio = float(self._fit[1] / self._fit[0])
-            self.fit_history.append(self.fit_ratio)
+            self.fit_history.append(float(self._fit[1] / self._fit[0]))
             self._fit[:2] = 0
         return updates
 
