@@ -215,15 +215,21 @@ def _locator_image(geometry: MarkerGeometry, cell_px: int, border_px: int) -> np
     return image
 
 
-def test_fit_square_pins_a_blurred_outline_to_the_locator():
-    geo, cell, border = MarkerGeometry(16), 4, 20
+@pytest.mark.parametrize("cell", [4, 23])
+def test_fit_square_pins_a_blurred_outline_to_the_locator(cell):
+    """At the small sensors' 4 px per cell to a pixel or two; at the 23 px of the 1280x720
+    camera 0.6 m from the marker, where the blob's outline starts more than a cell off, to a
+    quarter cell (the bands lie inside cells, so the contrast is flat over a few pixels there;
+    the capture of the ring's edges pins the pose after it)."""
+    geo, border = MarkerGeometry(16), 5 * cell
     image = _locator_image(geo, cell, border)
     side = geo.locator_side * cell
     truth = border + np.array([[0, 0], [side, 0], [side, side], [0, side]], float) - 0.5
     centre = truth.mean(axis=0)
-    start = centre + 1.12 * (truth - centre) + [3.0, -2.0]  # a blob grown by blur, off-centre
+    # A blob grown by blur and off-centre by most of a cell and a half.
+    start = centre + 1.12 * (truth - centre) + cell * np.array([1.3, -0.5])
     found = fit_square(image, start, geo.locator_side, geo.ring)
-    assert np.abs(found - truth).max() < 1.5, found.round(1)
+    assert np.abs(found - truth).max() < max(1.5, cell / 4), found.round(1)
 
 
 @pytest.mark.parametrize("start", range(4))

@@ -54,7 +54,11 @@ flow of 1-2 px/ms (1.10-1.14x on the 1280x720 paper N = 16 clips), in 2 px bins 
 (<= 1.0x), while hand-held motion at 0.5-1 px/ms still gains 1.8x or more."""
 HALF_WINDOW = 0.2
 """Half-width of a burst window in blink periods (paper Sec. IV-B)."""
-_SQUARE_SHIFTS_PX = np.arange(-6.0, 6.5, 1.0)
+_SQUARE_SHIFTS_CELLS = np.arange(-1.5, 1.6, 0.25)
+"""Shifts of the square's centre searched first, in cells: the blob's outline is off by up to a
+cell and a half (the motion-swept ring edges beside it join the blob), at any cell size."""
+_SQUARE_FINEST_PX = 0.25
+"""The refinement halves its steps (from an eighth of a cell) down to this."""
 _SQUARE_SCALES = np.arange(0.84, 1.07, 0.02)
 """The blob is up to a cell and a half larger than the locator on each side."""
 _SQUARE_TURNS = np.radians([-3.0, -1.5, 0.0, 1.5, 3.0])
@@ -290,12 +294,14 @@ def _square_outline(half: float, per_side: int = 24) -> np.ndarray:
 def fit_square(image: np.ndarray, quad: np.ndarray, locator_side: int, ring: int) -> np.ndarray:
     """(4, 2) corners of the square, near ``quad``, whose inner band (the locator ring's cells)
     is the most lit and whose outer band (the dark ring around the locator) the least, in the
-    blurred ``image``; a grid of shifts, scales and turns, then two finer ones."""
+    blurred ``image``; a grid of shifts, scales and turns, then finer ones down to
+    ``_SQUARE_FINEST_PX``."""
     lit = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
     inner = _square_outline(0.5 - 0.5 / locator_side)
     outer = _square_outline(0.5 + 0.5 * ring / locator_side)
     sides = np.roll(quad, -1, axis=0) - quad
     side = np.linalg.norm(sides, axis=1).mean()
+    cell = side / locator_side
     # Mean direction of the sides modulo 90 degrees.
     turn = np.angle(np.mean(np.exp(4j * np.arctan2(sides[:, 1], sides[:, 0])))) / 4
 
@@ -307,16 +313,19 @@ def fit_square(image: np.ndarray, quad: np.ndarray, locator_side: int, ring: int
 
     centre = quad.mean(axis=0)
     h = grid(
-        centre[0] + _SQUARE_SHIFTS_PX,
-        centre[1] + _SQUARE_SHIFTS_PX,
+        centre[0] + cell * _SQUARE_SHIFTS_CELLS,
+        centre[1] + cell * _SQUARE_SHIFTS_CELLS,
         side * _SQUARE_SCALES,
         turn + _SQUARE_TURNS,
     )
     best = h[np.argmax(contrast(h))]
-    for step in (0.5, 0.25):
-        k = np.arange(-2, 3) * step
-        h = best + grid(k, k, k * 0.02 * side, np.radians(k))
+    k, r = np.arange(-2, 3), 1.0
+    while r * cell / 8 >= _SQUARE_FINEST_PX:  # shifts from half the coarse grid's step
+        h = best + grid(
+            k * r * cell / 8, k * r * cell / 8, k * r * 0.01 * side, np.radians(k * r / 2)
+        )
         best = h[np.argmax(contrast(h))]
+        r /= 2
     cx, cy, length, angle = best
     rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     unit = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
