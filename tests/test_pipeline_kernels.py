@@ -9,6 +9,7 @@ import copy
 
 import cv2
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -147,6 +148,30 @@ def test_triage_hands_the_tracker_the_events_on_marked_tiles_as_columns():
     expected = to_columns(events[on_tile], DISTORTED.undistort_table)
     for field in ("t", "x", "y", "p", "xu", "yu"):
         assert np.array_equal(near[field], expected[field])
+
+
+@pytest.mark.parametrize("per_ms", [50.0, 120.0, 1000.0])
+def test_the_trackers_events_are_thinned_evenly_to_their_budget(per_ms):
+    """Every k-th near-edge event, k the least that keeps within ``per_ms`` per millisecond of
+    the chunk, and every one of them when the chunk is within budget; the surfaces still take
+    every event."""
+    rng = np.random.default_rng(4)
+    n = 500
+    events = make_events(
+        np.sort(rng.integers(0, 2000, n)),
+        rng.integers(0, 6, n),
+        rng.integers(0, 4, n),
+        rng.choice([-1, 1], n),
+    )
+    thinned, whole = (EventTriage(DISTORTED.undistort_table, GAP_US, True) for _ in range(2))
+    for triage in (thinned, whole):
+        triage._tiles[:] = True
+    near = thinned(events, per_ms)
+    every = whole(events)
+    span_ms = (int(events["t"][-1]) - int(events["t"][0]) + 1) / 1000
+    k = max(1, -(-n // int(per_ms * span_ms)))
+    assert np.array_equal(near["t"], every["t"][::k]) and len(near["t"]) <= per_ms * span_ms
+    assert np.array_equal(thinned.surface, whole.surface)
 
 
 def test_columns_of_selected_events_match_columns_of_their_copy():

@@ -262,7 +262,7 @@ class Receiver:
             with self._cpu("triage"):
                 if track:
                     self._select_near_edges()
-                near = self._triage(events[:cut])
+                near = self._triage(events[:cut], self.config.tracker.max_events_per_ms)
             if track:
                 out += self._track(near)
             events = events[cut:]

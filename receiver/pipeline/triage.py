@@ -139,13 +139,19 @@ class EventTriage:
         self._tiles[:] = False
         self._edges = None
 
-    def __call__(self, events: np.ndarray) -> EventColumns:
-        """Integrate ``events`` (structured) into the surfaces; the near-edge ones as columns."""
-        if len(events) and int(events["t"][-1]) - self.epoch_us > _REBASE_US:
+    def __call__(self, events: np.ndarray, per_ms: float | None = None) -> EventColumns:
+        """Integrate ``events`` (structured) into the surfaces; the near-edge ones as columns,
+        evenly thinned to at most ``per_ms`` per millisecond of ``events`` (None: all)."""
+        if not len(events):
+            return to_columns(events, self._table)
+        if int(events["t"][-1]) - self.epoch_us > _REBASE_US:
             shift = int(events["t"][0]) - self.epoch_us - (1 << 20)
             self.surface[:] = np.maximum(self.surface.astype(np.int64) - shift, _NEVER)
             self.epoch_us += shift
         near = _triage(events, self.surface, self.epoch_us, self.gap_us, self._tiles)
+        if per_ms is not None:
+            most = max(int(per_ms * (int(events["t"][-1]) - int(events["t"][0]) + 1) / 1000), 1)
+            near = near[:: -(-len(near) // most)] if len(near) > most else near
         return to_columns(events, self._table, near)
 
     def track_near(self, a: np.ndarray, b: np.ndarray, reach_px: float) -> None:
