@@ -178,6 +178,25 @@ def test_hand_held_tracking_keeps_pose_error_small_and_decodes():
     assert [m.message.data for m in log.messages] == [MESSAGE]
 
 
+@pytest.mark.slow
+def test_full_size_sensor_under_hand_held_motion_locks_on_the_right_cells():
+    """The paper's 1280x720 camera 0.6 m from the marker (23 px per cell) at 1 px/ms: a lock
+    search sized for small cells put the pose two cells sideways, 2.6 cm off."""
+    scene = _scene(
+        "robust",
+        HandHeldMotion(distance_m=0.6, flow_px_per_ms=1.0, seed=0),
+        "gen4-indoor",
+        camera=CameraModel.paper(),
+    )
+    log, rec = _run(scene, 1.2)
+    stats = log.receiver.stats
+    assert stats.lock_times_us[0] <= 100_000 and stats.losses == 0
+    t = np.array(log.pose_t)
+    err = np.linalg.norm(np.array(log.poses)[:, :3, 3] - rec.pose_at(t)[:, :3, 3], axis=1)
+    assert err.max() < 0.01
+    assert [m.message.data for m in log.messages] == [MESSAGE]
+
+
 def test_noise_without_marker_reports_why_nothing_locked():
     rng = np.random.default_rng(3)
     config = ReceiverConfig(CAMERA)
