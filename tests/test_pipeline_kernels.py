@@ -155,14 +155,8 @@ def test_the_trackers_events_are_thinned_evenly_to_their_budget(per_ms):
     """Every k-th near-edge event, k the least that keeps within ``per_ms`` per millisecond of
     the chunk, and every one of them when the chunk is within budget; the surfaces still take
     every event."""
-    rng = np.random.default_rng(4)
-    n = 500
-    events = make_events(
-        np.sort(rng.integers(0, 2000, n)),
-        rng.integers(0, 6, n),
-        rng.integers(0, 4, n),
-        rng.choice([-1, 1], n),
-    )
+    events = _stream(np.random.default_rng(4), 500)
+    n = len(events)
     thinned, whole = (EventTriage(DISTORTED.undistort_table, GAP_US, True) for _ in range(2))
     for triage in (thinned, whole):
         triage._tiles[:] = True

@@ -108,8 +108,8 @@ class TrackerParams:
     max_events_per_ms: float | None = 4000.0
     """Events near the edges given to the tracker per millisecond at most, evenly thinned
     beyond (None: all). A hand-held 1280x720 camera puts ~37 M events a second near the ring,
-    whose ~1000 slots each keep only their newest: 4 per slot per update interval still
-    refresh every slot, and the tracker's cost stops growing with the event rate."""
+    whose ~1000 slots each keep only their newest: 4 per slot and millisecond still refresh
+    every slot between pose updates, and the tracker's cost stops growing with the event rate."""
     huber_px: float = 1.0
     max_iterations: int = 10
 
