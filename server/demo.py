@@ -119,8 +119,11 @@ def main(argv: list[str] | None = None) -> None:
     base_url = bound_url(server)
     message = upload_sample(base_url, settings)
     # A SIGTERM (``kill``, a container stopping) stops the demo as Ctrl-C does, receiver
-    # included, rather than killing it and leaving the receiver running on.
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    # included, rather than killing it and leaving the receiver running on. SIGINT gets the
+    # handler too: a shell starts background jobs with SIGINT ignored, and Python then keeps
+    # ignoring it, so ``kill -INT`` would do nothing.
+    for stop_signal in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(stop_signal, signal.default_int_handler)
     receiver = start_receiver(base_url, settings, args.motion)
     try:
         print(f"eventocc server on {base_url}  (API docs: {base_url}/docs)")

@@ -1,4 +1,5 @@
-"""``make demo``, whose virtual camera is hand-held: the dashboard sees the pose move."""
+"""``make demo``: its virtual camera is hand-held, so the dashboard sees the pose move; and
+Ctrl-C stops all of it."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import subprocess
 import sys
 import time
 import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -57,24 +60,47 @@ def dashboard_poses(port: int, first_within_s: float, then_s: float) -> np.ndarr
     return np.array(positions).reshape(-1, 3)
 
 
-def test_the_demo_shows_the_message_decoded_and_the_pose_moving(tmp_path) -> None:
-    port = free_port()
-    started = datetime.now(UTC)
+@contextmanager
+def running_demo(tmp_path: Path, port: int, **popen) -> Iterator[subprocess.Popen]:
+    """``server.demo`` in its own process group, which is killed whole if the demo has not
+    exited by the end: a demo left behind would load the machine for the tests after it."""
     demo = subprocess.Popen(
         [sys.executable, "-m", "server.demo"],
         cwd=ROOT,
         env={**os.environ, "EVENTOCC_PORT": str(port), "EVENTOCC_DATA_DIR": str(tmp_path)},
-        stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        start_new_session=True,
+        **popen,
     )
     try:
-        positions = dashboard_poses(port, first_within_s=60.0, then_s=MOVING_WITHIN_S)
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/receptions") as response:
-            receptions = json.load(response)["receptions"]
+        yield demo
     finally:
-        demo.send_signal(signal.SIGINT)
-        _, log = demo.communicate(timeout=60)
+        if demo.poll() is None:
+            os.killpg(demo.pid, signal.SIGKILL)
+            demo.wait()
+
+
+def stop(demo: subprocess.Popen, within_s: float = 60.0) -> str:
+    """Ctrl-C the demo; its log once it exited, which it must within ``within_s``."""
+    demo.send_signal(signal.SIGINT)
+    try:
+        _, log = demo.communicate(timeout=within_s)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the demo did not exit within {within_s:.0f} s of Ctrl-C")
+    return log
+
+
+def test_the_demo_shows_the_message_decoded_and_the_pose_moving(tmp_path) -> None:
+    port = free_port()
+    started = datetime.now(UTC)
+    with running_demo(tmp_path, port, stdout=subprocess.DEVNULL) as demo:
+        try:
+            positions = dashboard_poses(port, first_within_s=60.0, then_s=MOVING_WITHIN_S)
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/receptions") as response:
+                receptions = json.load(response)["receptions"]
+        finally:
+            log = stop(demo)
     assert len(positions), f"no pose reached the dashboard:\n{log}"
     travel = np.linalg.norm(positions - positions[0], axis=1).max()
     assert travel >= MIN_TRAVEL_M, f"the camera stood still ({travel * 100:.1f} cm):\n{log}"
@@ -84,3 +110,21 @@ def test_the_demo_shows_the_message_decoded_and_the_pose_moving(tmp_path) -> Non
     assert verified, f"no verified message:\n{log}"
     took = datetime.fromisoformat(verified[0]["received"]) - started
     assert took.total_seconds() <= DECODED_WITHIN_S, f"decoded after {took}"
+
+
+def test_ctrl_c_stops_the_demo_started_in_the_background(tmp_path) -> None:
+    """A shell starts background jobs with SIGINT ignored; ``kill -INT`` must still stop the
+    demo, and its receiver with it."""
+    with running_demo(
+        tmp_path,
+        free_port(),
+        stdout=subprocess.PIPE,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    ) as demo:
+        for line in demo.stdout:
+            if line.startswith("Ctrl-C to stop"):
+                break
+        log = stop(demo, within_s=30.0)
+        assert demo.returncode == 0, log
+        with pytest.raises(ProcessLookupError):  # nothing left in its process group
+            os.killpg(demo.pid, 0)
