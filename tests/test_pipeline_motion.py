@@ -14,7 +14,7 @@ from bench.experiments.eventcam import HAND_HELD_TRACKER, clip_message
 from bench.experiments.eventcam import hand_held_scene as paper_hand_held_scene
 from bench.tracking import CAMERA, hand_held_config, hand_held_scene
 from occ.marker import MarkerGeometry, render
-from occ.stream import StreamEncoder
+from occ.stream import StreamDecoder, StreamEncoder
 from receiver.events import EVENT_DTYPE, make_events
 from receiver.pipeline import receiver as receiver_module
 from receiver.pipeline.config import DecoderParams, DetectorParams, ReceiverConfig
@@ -45,7 +45,7 @@ from receiver.pipeline.receiver import (
     Receiver,
     StateChange,
 )
-from receiver.sim import Recording, simulate
+from receiver.sim import Recording, StaticMotion, simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
@@ -309,8 +309,15 @@ def _run(flow_px_per_ms: float, duration_s: float, seed: int = 0) -> dict:
     return _replay(*_clip(flow_px_per_ms, duration_s, seed))
 
 
-def _replay(rec: Recording, chunks: list[np.ndarray], config: ReceiverConfig | None = None) -> dict:
+def _replay(
+    rec: Recording,
+    chunks: list[np.ndarray],
+    config: ReceiverConfig | None = None,
+    stream: StreamDecoder | None = None,
+) -> dict:
     rx = Receiver(config or hand_held_config())
+    if stream is not None:
+        rx.stream = stream
     poses: list[PoseEstimate] = []
     changes: list[StateChange] = []
     frames: list[FrameOutput] = []
@@ -405,6 +412,53 @@ def test_the_l_check_needs_at_least_one_frame():
 def test_a_correct_lock_under_motion_stands(slow_hand):
     """The 'L' check must not fire on a pose that tracks the marker."""
     assert slow_hand["stats"].losses == 0, [c.reason for c in slow_hand["changes"]]
+
+
+class _NeverVerifies(StreamDecoder):
+    """The stream decoder of a lock that reads garbage: no frame passes its check."""
+
+    def push(self, bits: np.ndarray, confidence: np.ndarray | None = None) -> list:
+        return []
+
+
+def test_a_lock_under_motion_ends_its_probation_at_its_first_verified_frame(slow_hand):
+    """The right lock's frames pass their check well within the probation."""
+    frames = slow_hand["frames"]
+    first = next(k for k, f in enumerate(f for f in frames if f.accepted) if f.payload_bits)
+    assert first < hand_held_config().decoder.probation_frames
+
+
+def test_a_lock_under_motion_whose_frames_never_verify_is_dropped(slow_clip):
+    """A quarter-turned lock a ring width too near reads the static ring as the 'L' and passes
+    every other check; only the frame check can tell. Here the check always fails."""
+    base = hand_held_config()
+    config = replace(base, decoder=replace(base.decoder, probation_frames=3))
+    run = _replay(*slow_clip, config, _NeverVerifies(profile=config.profile, cells=config.cells))
+    changes = run["changes"]
+    drops = [c for c in changes if c.state == DETECTING]
+    assert drops, "the lock stood without a single verified frame"
+    assert changes[0].state == TRACKING and changes[1] == drops[0]
+    assert drops[0].reason == "no frame passed its check since the lock"
+    read = [f for f in run["frames"] if f.read.t_us <= drops[0].t_us and f.accepted]
+    assert len(read) == 3  # the lock's frames (from its burst, before the lock's StateChange)
+
+
+def test_a_still_lock_needs_no_probation():
+    """A still detection reads the locator reliably: its lock stands without a verified frame
+    (a screen whose frames do not verify still gives the pose)."""
+    scene = replace(hand_held_scene(0.5, 0), motion=StaticMotion(distance_m=0.6))
+    rec = simulate(scene, duration_s=0.4, chunk_us=10_000)
+    base = hand_held_config()
+    config = replace(base, decoder=replace(base.decoder, probation_frames=1))
+    unverifiable = _NeverVerifies(profile=config.profile, cells=config.cells)
+    run = _replay(rec, list(rec), config, unverifiable)
+    assert [c.state for c in run["changes"]] == [TRACKING]
+    assert sum(f.accepted for f in run["frames"]) > 1
+
+
+def test_the_probation_needs_at_least_one_frame():
+    with pytest.raises(ValueError, match="probation_frames must be at least 1"):
+        DecoderParams(probation_frames=0)
 
 
 @pytest.mark.slow

@@ -142,10 +142,20 @@ class DecoderParams:
     counts as lost. A correct pose reads a lead of ~1.5 (hand-held at 0.5 px/ms); a pose a
     quarter turn off, or one whose ring fit is a ring width too large, reads ~0-0.6 although
     its ``locator_score`` (medians of the white and black cells) often reads 1 (issue 4)."""
+    probation_frames: int | None = 20
+    """A lock from a detection under motion must pass a frame check (CRC, framed profiles only)
+    within this many frames with the locator seen, or it is dropped: a pose a quarter turn
+    off and a ring width too near reads the static white ring as the 'L' and passes every
+    other check, but none of its frames ever verifies (0 of 47 on a 240x180 clip at 1 px/ms,
+    where the right locks first verified at their 4th to 12th frame). None: no probation."""
 
     def __post_init__(self) -> None:
         if self.turn_frames < 1:
             raise ValueError(f"decoder turn_frames must be at least 1, got {self.turn_frames}")
+        if self.probation_frames is not None and self.probation_frames < 1:
+            raise ValueError(
+                f"decoder probation_frames must be at least 1 or None, got {self.probation_frames}"
+            )
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,9 @@ the same on any machine; only a real-time source also spaces them by their CPU c
 becomes a lock only once the frames still buffered verify it (``Receiver._unverified``). While
 tracking, a lock is dropped when the tracker leaves the ring's edges, the marker leaves the view,
 the inner locator goes unseen for several frames, or its 'L' reads upright barely better than
-turned (``Receiver._misturned``): a pose a quarter turn off passes every other check.
+turned (``Receiver._misturned``): a pose a quarter turn off passes every other check. A lock
+from a detection under motion is on probation until one of its frames passes its check
+(``Receiver._failed_probation``), since some wrong poses read the 'L' well.
 
 Only one stage touches every event while the marker is tracked: the compiled triage
 (``triage.EventTriage``), which keeps each pixel's latest burst times for the decoder and hands
@@ -29,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from occ.profiles import get_profile
 from occ.stream import ReceivedMessage, StreamDecoder
 from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from receiver.pipeline.config import ReceiverConfig
@@ -113,6 +116,8 @@ class Receiver:
         self._reader: CellReader | None = None
         self._next_frame = 0
         self._missed = 0
+        self._probation: int | None = None
+        """Frames left for a lock under probation to pass a frame check (``_on_probation``)."""
         self._turn_leads: deque[float] = deque(maxlen=config.decoder.turn_frames)
         """The latest read frames' leads of the locator's canonical turn (``_misturned``)."""
         self._gaps: deque[tuple[int, int]] = deque(maxlen=8)
@@ -207,6 +212,8 @@ class Receiver:
         window = self.config.detector.window_us
         self._next_frame = 0 if found.moving else -int(window // self.config.frame_us) + 1
         self._missed = 0
+        framed = get_profile(self.config.profile).framed
+        self._probation = self.config.decoder.probation_frames if found.moving and framed else None
         self._turn_leads.clear()
         self._pose_t, self._pose_T = [t_lock], [T]
         self.state = TRACKING
@@ -357,9 +364,20 @@ class Receiver:
             verified = self.stream.verified_bits
             with self._cpu("stream"):
                 messages = self.stream.push(read.bits, read.confidence)
-            out.append(FrameOutput(read, True, self.stream.verified_bits - verified))
+            frame = FrameOutput(read, True, self.stream.verified_bits - verified)
+            out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]
+            if self._failed_probation(frame):
+                out += self._lose(now, "no frame passed its check since the lock")
         return out
+
+    def _failed_probation(self, frame: FrameOutput) -> bool:
+        """Whether a lock on probation (``DecoderParams.probation_frames``) has now read its
+        last allowed frame without one passing its check; a frame that passes ends it."""
+        if self._probation is None:
+            return False
+        self._probation = None if frame.payload_bits else self._probation - 1
+        return self._probation == 0
 
     def _misturned(self, read: FrameRead) -> bool:
         """Record ``read``; whether the last ``turn_frames`` frames read the locator's 'L'
