@@ -17,12 +17,14 @@ from occ.marker import MarkerGeometry, render
 from occ.stream import StreamDecoder, StreamEncoder
 from receiver.events import EVENT_DTYPE, make_events
 from receiver.pipeline import receiver as receiver_module
+from receiver.pipeline.buffer import to_columns
 from receiver.pipeline.config import DecoderParams, DetectorParams, ReceiverConfig
 from receiver.pipeline.detector import (
     blinking_region,
     locator_cells,
     orient,
     ring_cells,
+    ring_support,
     turn_readings,
 )
 from receiver.pipeline.locate import (
@@ -36,7 +38,7 @@ from receiver.pipeline.locate import (
     quadrilateral,
     warped_counts,
 )
-from receiver.pipeline.pose import pnp
+from receiver.pipeline.pose import pnp, project_ideal
 from receiver.pipeline.receiver import (
     DETECTING,
     TRACKING,
@@ -45,6 +47,7 @@ from receiver.pipeline.receiver import (
     Receiver,
     StateChange,
 )
+from receiver.pipeline.tracker import edge_polarities
 from receiver.sim import Recording, StaticMotion, simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
@@ -364,6 +367,52 @@ def test_a_wrong_lock_under_motion_is_dropped_quickly(slow_hand):
     the tracker's fit ratio (events off the ring's edges) or the 'L' check has to end it."""
     spans = _wrong_lock_spans_us(slow_hand)
     assert max(spans, default=0) <= WRONG_LOCK_DROPPED_US, f"wrong poses tracked for {spans} us"
+
+
+def test_edge_polarities_follow_the_flow_across_each_edge():
+    """The marker moving right: the white ring's right outer edge moves onto the black ring
+    (those pixels brighten: ON), its right inner edge away from the dark gap (OFF), and the
+    top and bottom edges slide along themselves (unknown)."""
+    outer = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    inner = np.array([[2, 2], [8, 2], [8, 8], [2, 8]], float)
+    a = np.vstack([outer, inner])
+    b = np.vstack([np.roll(outer, -1, axis=0), np.roll(inner, -1, axis=0)])
+    polarities = edge_polarities(a, b, np.array([1.0, 0.0]))
+    assert polarities.tolist() == [0, 1, 0, -1, 0, -1, 0, 1]
+
+
+def test_the_ring_fires_as_the_flow_says_at_the_true_pose_only(slow_clip):
+    """At the true pose the ring's events agree with the polarities the flow gives its edges;
+    at the pose that takes the ring's inner edge for the locator's outline (a ring width too
+    near, the fit that once read the white ring as the 'L') they do not."""
+    rec, chunks = slow_clip
+    config = hand_held_config()
+    t = 300_000
+    events = np.concatenate(chunks)
+    events = to_columns(events[np.abs(events["t"] - t) <= 1000], config.camera.undistort_table)
+    truth = np.linalg.inv(rec.pose_at(np.array([t - 1000, t, t + 1000])))
+    centre = config.geometry.locator_corners(config.marker_size_m).mean(axis=0)[None]
+    before, after = (project_ideal(T, config.camera.K, centre)[0] for T in truth[[0, 2]])
+    flow = (after - before) / 2.0  # px/ms
+    geo = config.geometry
+    world = geo.locator_corners(config.marker_size_m)
+    larger = centre + (world - centre) * (geo.locator_side + 2 * geo.ring) / geo.locator_side
+    corners = config.camera.project(larger @ truth[1][:3, :3].T + truth[1][:3, 3])
+    too_near = pnp(corners, world, config.camera)
+    on, agree = ring_support(truth[1], events, flow, config)
+    assert on > 100 and agree >= 0.9
+    assert ring_support(too_near, events, flow, config)[1] < config.detector.min_edge_polarity
+
+
+def test_at_1_px_per_ms_the_first_lock_is_the_right_one():
+    """Seed 3 at 1 px/ms: the capture took the black ring around the white one for the ring,
+    and the lock (a quarter turn off, 11 cm too near) passed every check for 1.5 s, then came
+    back. Now only events with the polarity the flow gives an edge pull the capture onto it."""
+    run = _run(1.0, 0.4, seed=3)
+    locks = [c for c in run["changes"] if c.state == TRACKING]
+    assert locks and locks[0].t_us <= LOCK_WITHIN_US, [c.reason for c in run["changes"]]
+    assert run["stats"].losses == 0
+    assert np.median(run["err"]) <= TRACKED_RMS_M
 
 
 @pytest.fixture

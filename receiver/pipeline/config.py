@@ -62,6 +62,11 @@ class DetectorParams:
     min_orientation_score: float = 0.25
     """Lead of the best rotation's contrast between the inner locator's expected white and black
     cells over the runner-up's."""
+    min_edge_polarity: float = 0.7
+    """Under motion, the ring fitted at the burst must fire with the polarities the flow gives
+    its edges (``detector.ring_support``) at least this well: +1.0 at the true pose on the
+    virtual camera, +0.2 to +0.5 for fits a ring width too large, which read the white ring as
+    the inner locator's 'L' and pass every later check."""
     min_lock_fit_ratio: float = 0.6
     """Under motion, a lock stands only if this share of the events near the ring lie on its
     edges while the buffered events are tracked (a still camera's ring fires only noise)."""

@@ -64,6 +64,22 @@ def _nearest_edge(xu, yu, a, b):
     return dist, edge
 
 
+def edge_polarities(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """(8,) polarity (+1 ON, -1 OFF, 0 unknown) of the events that image ``flow`` fires on the
+    ring's projected edges ``a[i] -> b[i]`` (the outer ones, then the inner ones).
+
+    An edge moving towards its dark side brightens its pixels. The white ring is the bright side
+    of its outer edges and the dark gap inside it the dark side of its inner ones. Edges moving
+    along themselves (under a quarter of the flow across them) are unknown."""
+    along = b - a
+    normal = np.stack([along[:, 1], -along[:, 0]], axis=1)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal *= np.sign(np.sum(((a + b) / 2 - a.mean(axis=0)) * normal, axis=1))[:, None]
+    across = normal @ flow  # outwards
+    known = np.abs(across) >= 0.25 * np.linalg.norm(flow)
+    return np.where(known, np.sign(across), 0.0) * np.repeat([1.0, -1.0], 4)
+
+
 @numba.njit(cache=True, nogil=True)
 def _capture_points(xu, yu, a, b, gate, deep_px, centre):
     """(whether it counts, nearest edge) of every point for a capture pass: it counts within
@@ -286,10 +302,21 @@ class EdgeTracker:
         self._last_rebin_us = now_us
 
     # --- start ---------------------------------------------------------------------------------
-    def capture(self, xu: np.ndarray, yu: np.ndarray, now_us: int) -> bool:
+    def capture(
+        self,
+        xu: np.ndarray,
+        yu: np.ndarray,
+        now_us: int,
+        motion: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> bool:
         """Pull the pose onto recent events of the ring's edges (from within about one ring width
         of them), in passes of shrinking gates. Returns False, keeping the pose, when the edges
-        have too few events (a still camera: then the detection itself is accurate)."""
+        have too few events (a still camera: then the detection itself is accurate).
+
+        ``motion`` = (the events' polarities, the image flow in px/ms): an event then counts
+        for an edge only with the polarity the flow gives that edge (``edge_polarities``), so
+        that the edges of the black ring around the white one, an edge of the other sign a ring
+        width further out, do not pull the pose."""
         q = self.config.tracker
         T = self.T_cam_world
         for scale in _CAPTURE_GATES:
@@ -299,6 +326,9 @@ class EdgeTracker:
             ring_px = self._ring_px(a, b)
             gate = scale * ring_px if scale else self._gates(ring_px)
             near, edge = _capture_points(xu, yu, a, b, gate, _LOCATOR_GAP * ring_px, a.mean(axis=0))
+            if motion is not None:
+                expected = edge_polarities(a, b, motion[1])[edge]
+                near &= (expected == 0) | (motion[0] * expected > 0)
             if np.count_nonzero(near) < _CAPTURE_MIN_EVENTS or len(np.unique(edge[near])) < 4:
                 return False
             pts = np.stack([xu[near], yu[near]], 1)
