@@ -12,7 +12,7 @@ import sys
 import time
 import urllib.request
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -62,8 +62,8 @@ def dashboard_poses(port: int, first_within_s: float, then_s: float) -> np.ndarr
 
 @contextmanager
 def running_demo(tmp_path: Path, port: int, **popen) -> Iterator[subprocess.Popen]:
-    """``server.demo`` in its own process group, which is killed whole if the demo has not
-    exited by the end: a demo left behind would load the machine for the tests after it."""
+    """``server.demo`` in its own process group, killed whole at the end (anything of it left
+    running, the demo or its receiver, would load the machine for the tests after it)."""
     demo = subprocess.Popen(
         [sys.executable, "-m", "server.demo"],
         cwd=ROOT,
@@ -76,9 +76,9 @@ def running_demo(tmp_path: Path, port: int, **popen) -> Iterator[subprocess.Pope
     try:
         yield demo
     finally:
-        if demo.poll() is None:
+        with suppress(ProcessLookupError):  # nothing left of it
             os.killpg(demo.pid, signal.SIGKILL)
-            demo.wait()
+        demo.wait()
 
 
 def stop(demo: subprocess.Popen, within_s: float = 60.0) -> str:

@@ -117,7 +117,7 @@ class Receiver:
         self._next_frame = 0
         self._missed = 0
         self._probation: int | None = None
-        """Frames left for a lock under probation to pass a frame check (``_on_probation``)."""
+        """Frames left for a lock on probation to pass a frame check (``_failed_probation``)."""
         self._turn_leads: deque[float] = deque(maxlen=config.decoder.turn_frames)
         """The latest read frames' leads of the locator's canonical turn (``_misturned``)."""
         self._gaps: deque[tuple[int, int]] = deque(maxlen=8)
