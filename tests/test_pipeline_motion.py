@@ -391,11 +391,11 @@ def test_the_ring_fires_as_the_flow_says_at_the_true_pose_only(slow_clip):
     events = np.concatenate(chunks)
     events = to_columns(events[np.abs(events["t"] - t) <= 1000], config.camera.undistort_table)
     truth = np.linalg.inv(rec.pose_at(np.array([t - 1000, t, t + 1000])))
-    centre = config.geometry.locator_corners(config.marker_size_m).mean(axis=0)[None]
-    before, after = (project_ideal(T, config.camera.K, centre)[0] for T in truth[[0, 2]])
-    flow = (after - before) / 2.0  # px/ms
     geo = config.geometry
     world = geo.locator_corners(config.marker_size_m)
+    centre = world.mean(axis=0)[None]
+    before, after = (project_ideal(T, config.camera.K, centre)[0] for T in truth[[0, 2]])
+    flow = (after - before) / 2.0  # px/ms
     larger = centre + (world - centre) * (geo.locator_side + 2 * geo.ring) / geo.locator_side
     corners = config.camera.project(larger @ truth[1][:3, :3].T + truth[1][:3, 3])
     too_near = pnp(corners, world, config.camera)
@@ -470,6 +470,13 @@ class _NeverVerifies(StreamDecoder):
         return []
 
 
+def _unverifiable(rec: Recording, chunks: list[np.ndarray], probation_frames: int) -> dict:
+    """``_replay`` with the given probation, where no frame ever passes its check."""
+    base = hand_held_config()
+    config = replace(base, decoder=replace(base.decoder, probation_frames=probation_frames))
+    return _replay(rec, chunks, config, _NeverVerifies(profile=config.profile, cells=config.cells))
+
+
 def test_a_lock_under_motion_ends_its_probation_at_its_first_verified_frame(slow_hand):
     """The right lock's frames pass their check well within the probation."""
     frames = slow_hand["frames"]
@@ -480,9 +487,7 @@ def test_a_lock_under_motion_ends_its_probation_at_its_first_verified_frame(slow
 def test_a_lock_under_motion_whose_frames_never_verify_is_dropped(slow_clip):
     """A quarter-turned lock a ring width too near reads the static ring as the 'L' and passes
     every other check; only the frame check can tell. Here the check always fails."""
-    base = hand_held_config()
-    config = replace(base, decoder=replace(base.decoder, probation_frames=3))
-    run = _replay(*slow_clip, config, _NeverVerifies(profile=config.profile, cells=config.cells))
+    run = _unverifiable(*slow_clip, probation_frames=3)
     changes = run["changes"]
     drops = [c for c in changes if c.state == DETECTING]
     assert drops, "the lock stood without a single verified frame"
@@ -497,10 +502,7 @@ def test_a_still_lock_needs_no_probation():
     (a screen whose frames do not verify still gives the pose)."""
     scene = replace(hand_held_scene(0.5, 0), motion=StaticMotion(distance_m=0.6))
     rec = simulate(scene, duration_s=0.4, chunk_us=10_000)
-    base = hand_held_config()
-    config = replace(base, decoder=replace(base.decoder, probation_frames=1))
-    unverifiable = _NeverVerifies(profile=config.profile, cells=config.cells)
-    run = _replay(rec, list(rec), config, unverifiable)
+    run = _unverifiable(rec, list(rec), probation_frames=1)
     assert [c.state for c in run["changes"]] == [TRACKING]
     assert sum(f.accepted for f in run["frames"]) > 1
 
