@@ -89,19 +89,29 @@ class Publisher:
                 kind = getattr(report, "type", type(report).__name__)
                 self.stats.ephemeral_dropped += kind in self._ephemeral
                 self._ephemeral[kind] = text
-        self._loop.call_soon_threadsafe(self._wake.set)
+        self._call_soon(self._wake.set)
 
     def close(self, drain_timeout_s: float = 5.0) -> None:
         """Stop, after trying for up to ``drain_timeout_s`` to deliver what the spool holds."""
-        if self._thread.is_alive():
-            self._loop.call_soon_threadsafe(self._begin_stop, drain_timeout_s)
+        if self._thread.is_alive() and self._call_soon(self._begin_stop, drain_timeout_s):
             self._thread.join()
+
+    def _call_soon(self, callback: Callable[..., None], *args: object) -> bool:
+        """Run ``callback`` on the publisher's loop; False once the loop has stopped for good."""
+        # Under the lock so that the loop cannot close between the check and the call: after a
+        # fatal refusal the thread closes it while the pipeline may still publish or close.
+        with self._lock:
+            if self._loop.is_closed():
+                return False
+            self._loop.call_soon_threadsafe(callback, *args)
+            return True
 
     # --- the publisher thread ---
 
     def _run(self) -> None:
         self._loop.run_until_complete(self._keep_connected())
-        self._loop.close()
+        with self._lock:
+            self._loop.close()
 
     def _begin_stop(self, drain_timeout_s: float) -> None:
         self._stop.set()

@@ -216,6 +216,9 @@ def test_wrong_token_stops_the_publisher_for_good(serve_app, tmp_path, caplog) -
     ).start()
     try:
         assert fatal.wait(10)
+        publisher._thread.join(10)  # its loop is closed now: publish and close must still work
+        publisher.publish(message(1), durable=True)
+        assert len(spool) == 1, "a report published after the refusal waits for the next run"
     finally:
         publisher.close(drain_timeout_s=0.5)
         spool.close()
