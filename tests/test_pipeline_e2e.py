@@ -11,7 +11,7 @@ from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.cli import main as cli_main
 from receiver.events import make_events
-from receiver.pipeline.config import ReceiverConfig
+from receiver.pipeline.config import DecoderParams, ReceiverConfig
 from receiver.pipeline.metrics import pose_errors
 from receiver.pipeline.receiver import Receiver
 from receiver.pipeline.report import DecodeLog, FrameTruth
@@ -115,6 +115,17 @@ def test_static_robust_at_120_hz_with_32_cells_is_error_free():
     log, _ = _run(scene, 1.0)
     assert log.ber is not None and log.ber < 0.01
     assert [m.message.data for m in log.messages] == [MESSAGE]
+
+
+@pytest.mark.parametrize("profile", ["robust", "fast"])
+def test_cells_twice_as_wide_as_needed_are_read_from_every_other_pixel(profile):
+    # About 12 px per cell: told that 5 are enough, the receiver keeps one pixel in four.
+    told = DecoderParams(read_px_per_cell=5.0)
+    log, _ = _run(_scene(profile, CLOSE, "gen4-indoor"), 1.0, decoder=told)
+    assert log.receiver._triage.stride == 2
+    assert log.ber is not None and log.ber < 0.01
+    assert [m.message.data for m in log.messages] == [MESSAGE]
+    assert log.receiver.stats.losses == 0
 
 
 @pytest.mark.parametrize(

@@ -51,15 +51,27 @@ def _reference_surface(events: np.ndarray, polarities: int) -> dict[tuple, int]:
     return start
 
 
+def _on_grid(surface: dict, stride: int) -> dict:
+    return {key: t for key, t in surface.items() if key[0] % stride == key[1] % stride == 0}
+
+
 @settings(max_examples=25, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.integers(1, 400), st.booleans(), st.integers(1, 3))
-def test_triage_keeps_each_pixels_latest_burst_start(seed, n, both, pieces):
+@given(
+    st.integers(0, 2**32 - 1),
+    st.integers(1, 400),
+    st.booleans(),
+    st.integers(1, 3),
+    st.sampled_from([1, 2, 4]),
+)
+def test_triage_keeps_each_pixels_latest_burst_start(seed, n, both, pieces, stride):
+    """Of the pixels on every ``stride``-th row and column (the others are not kept)."""
     rng = np.random.default_rng(seed)
     events = _stream(rng, n)
-    triage = EventTriage(DISTORTED.undistort_table, GAP_US, both, epoch_us=0)
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, both)
+    triage.reset(0, stride)
     for part in np.array_split(events, pieces):  # chunking must not matter
         triage(part)
-    expected = _reference_surface(events, 2 if both else 1)
+    expected = _on_grid(_reference_surface(events, 2 if both else 1), stride)
     bursts = triage.bursts(-(1 << 20), 1 << 20, (0, WIDTH, 0, HEIGHT))
     got = {
         (int(x), int(y), 0 if p > 0 else 1): int(t)
@@ -69,16 +81,19 @@ def test_triage_keeps_each_pixels_latest_burst_start(seed, n, both, pieces):
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.integers(0, 2000), st.integers(0, 2000))
-def test_bursts_are_those_that_began_in_the_window_inside_the_box(seed, t0, span):
+@given(
+    st.integers(0, 2**32 - 1), st.integers(0, 2000), st.integers(0, 2000), st.sampled_from([1, 2])
+)
+def test_bursts_are_those_that_began_in_the_window_inside_the_box(seed, t0, span, stride):
     rng = np.random.default_rng(seed)
     events = _stream(rng, 300)
-    triage = EventTriage(DISTORTED.undistort_table, GAP_US, True, epoch_us=0)
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, True)
+    triage.reset(0, stride)
     triage(events)
-    box = (1, 4, 1, 3)
+    box = (1, 4, 1, 4)  # odd edges: the stride's grid starts inside the box
     expected = {
         key: t
-        for key, t in _reference_surface(events, 2).items()
+        for key, t in _on_grid(_reference_surface(events, 2), stride).items()
         if t0 <= t < t0 + span and box[0] <= key[0] < box[1] and box[2] <= key[1] < box[3]
     }
     bursts = triage.bursts(t0, t0 + span, box)
@@ -166,6 +181,22 @@ def test_the_trackers_events_are_thinned_evenly_to_their_budget(per_ms):
     k = max(1, -(-n // int(per_ms * span_ms)))
     assert np.array_equal(near["t"], every["t"][::k]) and len(near["t"]) <= per_ms * span_ms
     assert np.array_equal(thinned.surface, whole.surface)
+
+
+def test_the_tile_lookups_thin_to_the_budget_from_the_share_near_the_edges():
+    """Once a chunk has shown how many events lie near the edges, the next is looked up only at
+    every k-th event: it still yields close to the budget, spread over the whole chunk."""
+    events = _stream(np.random.default_rng(5), 4000)
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, True)
+    triage._tiles[0, 0] = True  # pixels x < 4, y < 4: about two thirds of the events
+    per_ms = 600.0
+    span_ms = (int(events["t"][-1]) - int(events["t"][0]) + 1) / 1000
+    first = triage(events, per_ms)
+    second = triage(events, per_ms)
+    assert len(first["t"]) <= per_ms * span_ms
+    assert 0.7 * per_ms * span_ms <= len(second["t"]) <= per_ms * span_ms
+    assert np.all(second["x"] < TILE) and np.all(second["y"] < TILE)
+    assert second["t"][0] - events["t"][0] < 20 and events["t"][-1] - second["t"][-1] < 20
 
 
 def test_columns_of_selected_events_match_columns_of_their_copy():

@@ -13,8 +13,8 @@ from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.events import make_events
 from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
-from receiver.pipeline.config import FilterParams, ReceiverConfig
-from receiver.pipeline.decoder import CellReader, FrameClock
+from receiver.pipeline.config import DecoderParams, FilterParams, ReceiverConfig
+from receiver.pipeline.decoder import CellReader, FrameClock, read_stride
 from receiver.pipeline.detector import (
     MarkerNotFound,
     blink_phase,
@@ -209,6 +209,22 @@ def test_frame_clock_follows_a_slightly_fast_display():
         clock.observe(m, 1000.0 + m * 10_010.0, slope_us=50.0)
     assert clock.settled
     assert clock.period_us == pytest.approx(10_010.0) and clock.mid(10) == pytest.approx(101_100.0)
+
+
+@pytest.mark.parametrize(
+    ("px_per_cell", "want", "stride"), [(7, 8.0, 1), (20, 8.0, 2), (40, 8.0, 4), (40, None, 1)]
+)
+def test_large_cells_are_read_with_a_pixel_stride(px_per_cell, want, stride):
+    config = ReceiverConfig(
+        CameraModel(346, 260, K), cells=16, decoder=DecoderParams(read_px_per_cell=want)
+    )
+    geo, size = config.geometry, config.marker_size_m
+    centre = geo.locator_corners(size).mean(axis=0)
+    distance = K[0, 0] * geo.cell_size_m(size) / px_per_cell
+    facing = make_pose(np.eye(3), np.array([-centre[0], -centre[1], distance]))
+    assert read_stride(config, facing) == stride
+    behind = make_pose(np.eye(3), np.array([-centre[0], -centre[1], -distance]))
+    assert read_stride(config, behind) == 1
 
 
 def test_cells_read_against_the_locator_ring_and_score_its_contrast():

@@ -147,6 +147,11 @@ class DecoderParams:
     counts as lost. A correct pose reads a lead of ~1.5 (hand-held at 0.5 px/ms); a pose a
     quarter turn off, or one whose ring fit is a ring width too large, reads ~0-0.6 although
     its ``locator_score`` (medians of the white and black cells) often reads 1 (issue 4)."""
+    read_px_per_cell: float | None = 8.0
+    """Cells at least twice this wide (pixels, at the lock) are read from one pixel in every
+    s x s block: s is the largest power of two leaving this many pixels per cell side. A 1280x720
+    camera 0.6 m from an N = 16 marker sees 22 px per cell and ~140 M events a second; reading
+    every second row and column quarters the triage's memory traffic. None: every pixel."""
     probation_frames: int | None = 20
     """A lock from a detection under motion must pass a frame check (CRC, framed profiles only)
     within this many frames with the locator seen, or it is dropped: a pose a quarter turn
@@ -155,6 +160,10 @@ class DecoderParams:
     where the right locks first verified at their 4th to 12th frame). None: no probation."""
 
     def __post_init__(self) -> None:
+        if self.read_px_per_cell is not None and self.read_px_per_cell <= 0:
+            raise ValueError(
+                f"decoder read_px_per_cell must be positive or None, got {self.read_px_per_cell}"
+            )
         if self.turn_frames < 1:
             raise ValueError(f"decoder turn_frames must be at least 1, got {self.turn_frames}")
         if self.probation_frames is not None and self.probation_frames < 1:

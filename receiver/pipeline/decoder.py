@@ -50,7 +50,7 @@ import numpy as np
 from receiver.pipeline.buffer import EventColumns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.detector import ring_cells, turn_readings
-from receiver.pipeline.pose import plane_homography
+from receiver.pipeline.pose import plane_homography, project_ideal
 
 _HISTORY = 32
 """Frames in the clock fit: long enough to average jitter, short enough to follow drift."""
@@ -307,15 +307,32 @@ def _two_means(values: np.ndarray, dark: float, bright: float) -> float:
     return 0.5 * (dark + bright)
 
 
+def read_stride(config: ReceiverConfig, T_cam_world: np.ndarray) -> int:
+    """The pixel stride (``EventTriage.reset``) that cells seen from this pose can be read with:
+    the largest power of two leaving ``decoder.read_px_per_cell`` pixels per cell side."""
+    want = config.decoder.read_px_per_cell
+    geo = config.geometry
+    corners = project_ideal(T_cam_world, config.camera.K, geo.locator_corners(config.marker_size_m))
+    if want is None or not np.all(np.isfinite(corners)):
+        return 1
+    side = np.hypot(*(corners - np.roll(corners, 1, axis=0)).T).min() / geo.locator_side
+    stride = 1
+    while side / (2 * stride) >= want:
+        stride *= 2
+    return stride
+
+
 class CellReader:
     """Reads one data frame's cells; keeps the frame clock."""
 
-    def __init__(self, config: ReceiverConfig, first_burst_us: float) -> None:
+    def __init__(self, config: ReceiverConfig, first_burst_us: float, stride: int = 1) -> None:
+        """``stride``: the bursts come from the pixels on every stride-th row and column."""
         if config.decoder.step_us <= 0:
             raise ValueError(
                 f"decoder step_us must be positive microseconds, got {config.decoder.step_us}"
             )
         self.config = config
+        self.stride = stride
         geo = config.geometry
         self.n = geo.locator_side
         c = geo.cell_size_m(config.marker_size_m)
@@ -439,14 +456,15 @@ class CellReader:
         across the cell borders and the tracked pose trails, so which pixel centres fall
         inside is a guess, and the smooth expectation reads better (hand-held at 0.5 px/ms:
         BER 3.0e-2 counted, 1.8e-2 by area)."""
-        n, margin = self.n, self.config.decoder.cell_margin
+        n, margin, s = self.n, self.config.decoder.cell_margin, self.stride
         if not still:
-            return np.maximum(_cell_areas(to_grid, n, margin), 1.0)
+            return np.maximum(_cell_areas(to_grid, n, margin) / (s * s), 1.0)
         kept = self._pixels
         if kept is not None and self._moved(kept[0], to_grid, self._grid_corners) < _RECOUNT_CELLS:
             return kept[1]
         x0, x1, y0, y1 = self.box(T_cam_world)
-        ideal = self.config.camera.undistort_table[y0:y1, x0:x1]
+        on_grid = slice(-(-y0 // s) * s, y1, s), slice(-(-x0 // s) * s, x1, s)
+        ideal = self.config.camera.undistort_table[on_grid]
         pixels = np.maximum(_cell_pixels(ideal, to_grid, n, margin), 1)
         self._pixels = (to_grid, pixels)
         return pixels

@@ -35,7 +35,7 @@ from occ.profiles import get_profile
 from occ.stream import ReceivedMessage, StreamDecoder
 from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.decoder import CellReader, FrameRead
+from receiver.pipeline.decoder import CellReader, FrameRead, read_stride
 from receiver.pipeline.detector import Detection, MarkerNotFound, detect
 from receiver.pipeline.filters import EventFilter
 from receiver.pipeline.pose import project_ideal
@@ -205,8 +205,9 @@ class Receiver:
                 recent = to_columns(recent, self.config.camera.undistort_table)
                 if self._tracker.capture(recent["xu"], recent["yu"], now):
                     T = self._tracker.T_cam_world
-        self._reader = CellReader(self.config, found.burst_us)
-        self._triage.reset(now)
+        stride = read_stride(self.config, T)
+        self._reader = CellReader(self.config, found.burst_us, stride)
+        self._triage.reset(now, stride)
         # Frames inside the detection window are still buffered: read them too. Under motion the
         # pose holds at the compensated burst (frame 0) and is tracked from there to now.
         window = self.config.detector.window_us
