@@ -19,7 +19,7 @@ from receiver.pipeline.buffer import to_columns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.locate import Box, events_between, outline, quadrilateral
 from receiver.pipeline.pose import _residuals, project_ideal
-from receiver.pipeline.tracker import EdgeTracker, _assign, _capture_points
+from receiver.pipeline.tracker import EdgeTracker, _assign, _capture_points, _nearest_edge
 from receiver.pipeline.triage import TILE, EventTriage
 from receiver.poses import make_pose
 
@@ -442,5 +442,18 @@ def test_capture_points_match_their_definition(seed, gate_scale):
         side = d[0] * (yu[i] - a[e, 1]) - d[1] * (xu[i] - a[e, 0])
         ref = d[0] * (centre[1] - a[e, 1]) - d[1] * (centre[0] - a[e, 0])
         inside_deep = e >= 4 and dist[e] > deep[e] and side * ref > 0
-        assert edge[i] == e
         assert near[i] == (dist[e] <= gate[e] and not inside_deep)
+        assert edge[i] == e or dist[e] > gate.max()  # the nearest edge, where it can count
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.5, 20.0))
+def test_nearest_edge_within_reach_is_the_nearest_edge(seed, reach):
+    tracker, xu, yu = _tracker_and_points(seed, 400)
+    a, b = tracker._a, tracker._b
+    every_dist, every_edge = _nearest_edge(xu, yu, a, b)
+    dist, edge = _nearest_edge(xu, yu, a, b, reach)
+    within = every_dist <= reach
+    assert np.array_equal(dist[within], every_dist[within])
+    assert np.array_equal(edge[within], every_edge[within])
+    assert np.all(np.isinf(dist[~within]))

@@ -556,7 +556,7 @@ def ring_support(
     to +0.7."""
     edges = project_ideal(T, config.camera.K, config.geometry.tracked_edges(config.marker_size_m))
     a, b = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
-    dist, edge = _nearest_edge(events["xu"], events["yu"], a, b)  # the tracker's kernel
+    dist, edge = _nearest_edge(events["xu"], events["yu"], a, b, _ON_EDGE_PX)  # the tracker's
     on = dist <= _ON_EDGE_PX
     expected = edge_polarities(a, b, flow)[edge]
     judged = on & (expected != 0)

@@ -52,14 +52,25 @@ def _to_segment(px, py, ax, ay, bx, by):
 
 
 @numba.njit(cache=True, nogil=True)
-def _nearest_edge(xu, yu, a, b):
-    """Distance to, and index of, the nearest projected edge of every point."""
-    n = xu.shape[0]
+def _nearest_edge(xu, yu, a, b, reach=np.inf):
+    """Distance to, and index of, the nearest projected edge of every point; a point farther
+    than ``reach`` from every edge gets an infinite distance (and edge 0).
+
+    Most points of a detection window lie in the data area, far from the ring: a cross product
+    per edge (a point is never nearer a segment than its line) rules those out before the exact
+    distance, a division and a square root."""
+    n, m = xu.shape[0], a.shape[0]
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    far2 = (reach * (1 + 1e-6)) ** 2 * (dx * dx + dy * dy)  # the margin covers rounding
     dist, edge = np.full(n, np.inf), np.zeros(n, np.int64)
     for i in range(n):
-        for e in range(a.shape[0]):
-            d, _ = _to_segment(xu[i], yu[i], a[e, 0], a[e, 1], b[e, 0], b[e, 1])
-            if d < dist[i]:
+        px, py = xu[i], yu[i]
+        for e in range(m):
+            cross = dx[e] * (py - a[e, 1]) - dy[e] * (px - a[e, 0])
+            if cross * cross > far2[e]:
+                continue
+            d, _ = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+            if d < dist[i] and d <= reach:
                 dist[i], edge[i] = d, e
     return dist, edge
 
@@ -85,7 +96,7 @@ def _capture_points(xu, yu, a, b, gate, deep_px, centre):
     """(whether it counts, nearest edge) of every point for a capture pass: it counts within
     its nearest edge's ``gate``, except more than ``deep_px`` on the centre side of an outer edge
     (4..7), which is nearer the ring's inner edge or the blinking locator than it looks."""
-    dist, edge = _nearest_edge(xu, yu, a, b)
+    dist, edge = _nearest_edge(xu, yu, a, b, gate.max())
     near = np.empty(xu.shape[0], np.bool_)
     for i in range(xu.shape[0]):
         e = edge[i]
