@@ -292,8 +292,8 @@ def slow_cpu(monkeypatch):
 
 def test_detection_retries_are_spaced_in_event_time_whatever_the_machine(slow_cpu):
     rx = Receiver(CONFIG)
-    _push_noise(rx, 30)  # 300 ms: attempts at 70 ms, then every 35 ms (+ one chunk's rounding)
-    assert _attempts(rx) == 6
+    _push_noise(rx, 30)  # 300 ms: attempts at 70 ms, then 17.5 ms after, at the next chunk
+    assert _attempts(rx) == 12  # 70, 90, 110, ..., 290 ms
     assert not rx.stats.lock_times_us
 
 
