@@ -310,10 +310,11 @@ def _two_means(values: np.ndarray, dark: float, bright: float) -> float:
 def read_stride(config: ReceiverConfig, T_cam_world: np.ndarray) -> int:
     """The pixel stride (``EventTriage.reset``) that cells seen from this pose can be read with:
     the largest power of two leaving ``decoder.read_px_per_cell`` pixels per cell side."""
-    want = config.decoder.read_px_per_cell
-    geo = config.geometry
+    want, geo = config.decoder.read_px_per_cell, config.geometry
+    if want is None:
+        return 1
     corners = project_ideal(T_cam_world, config.camera.K, geo.locator_corners(config.marker_size_m))
-    if want is None or not np.all(np.isfinite(corners)):
+    if not np.all(np.isfinite(corners)):
         return 1
     side = np.hypot(*(corners - np.roll(corners, 1, axis=0)).T).min() / geo.locator_side
     stride = 1

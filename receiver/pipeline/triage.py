@@ -142,6 +142,8 @@ class EventTriage:
         self.surface = np.full((height, width, self._polarities, 2), _NEVER, np.int32)
         self.stride = 1
         """The surface holds the pixels on every ``stride``-th row and column (``reset``)."""
+        self._shift = 0
+        """log2 of the stride: pixel >> shift is the surface's index."""
         self._near_share = 1.0
         """Share of the events that lay near the edges in the latest call."""
         self.epoch_us = epoch_us
@@ -165,7 +167,7 @@ class EventTriage:
         if self.surface.shape != shape:
             self.surface = np.empty(shape, np.int32)
         self.surface.fill(_NEVER)
-        self.stride = stride
+        self.stride, self._shift = stride, stride.bit_length() - 1
         self.epoch_us = epoch_us
         self._near_share = 1.0
         self._tiles[:] = False
@@ -186,8 +188,8 @@ class EventTriage:
         # Only every k-th event is looked up in the tiles, k from the share that lay near the
         # edges last time: at 140 M events a second the tracker keeps one near event in ten.
         every = max(-int(-len(events) * self._near_share // most), 1)
-        shift = self.stride.bit_length() - 1
-        near = _triage(events, self.surface, self.epoch_us, self.gap_us, self._tiles, shift, every)
+        surface, epoch, tiles = self.surface, self.epoch_us, self._tiles
+        near = _triage(events, surface, epoch, self.gap_us, tiles, self._shift, every)
         self._near_share = len(near) * every / len(events)
         near = near[:: -(-len(near) // most)] if len(near) > most else near
         return to_columns(events, self._table, near)
@@ -205,6 +207,8 @@ class EventTriage:
     def bursts(self, t0: int, t1: int, box: tuple[int, int, int, int]) -> EventColumns:
         """The pixel bursts that began in ``[t0, t1)`` inside ``box`` = (x0, x1, y0, y1): one
         entry per pixel on the stride's grid and polarity, with the burst's start as its time."""
-        e, shift = self.epoch_us, self.stride.bit_length() - 1
+        e = self.epoch_us
         lo, hi = max(t0 - e, _NEVER + 1), min(t1 - e, (1 << 31) - 1)
-        return EventColumns(*_bursts_between(self.surface, e, lo, hi, *box, self._table, shift))
+        return EventColumns(
+            *_bursts_between(self.surface, e, lo, hi, *box, self._table, self._shift)
+        )
