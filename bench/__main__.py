@@ -80,12 +80,13 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
 - Baseline comparison: our frame camera is kinder than the paper's (global shutter, no
   synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often
   here than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its
-  throughput above ours at N = 16; the paper found the opposite. Under fast motion (4 px/ms)
-  detection can still lock onto a wrong pose that the lock's checks pass (seen: a quarter turn
-  off, the ring fitted about a ring width too large; the square ring cannot tell a quarter
-  turn apart): tracking drops it within three frames, once the inner locator's 'L' reads no
-  better upright than turned, and locks again; the `paper` profile, with no CRC, reads those
-  few frames as garbage.
+  throughput above ours at N = 16; the paper found the opposite. In the `--quick` run under
+  fast motion (4 px/ms) detection locked onto a wrong pose that the lock's checks passed (a
+  quarter turn off, the ring fitted about a ring width too large; the square ring cannot tell
+  a quarter turn apart): tracking dropped it within three frames, once the inner locator's 'L'
+  read no better upright than turned, and locked again; the `paper` profile, with no CRC, read
+  those few frames as garbage. The ring capture has since learned to tell the white ring from
+  the black one by the events' polarity; this experiment has not been rerun with it.
 - The simulator has no motion-capture noise, calibration error or clock offset, so our ATE is
   below the paper's; it shows the tracker, not what a real set-up would measure.
 """
