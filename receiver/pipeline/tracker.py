@@ -51,23 +51,36 @@ def _to_segment(px, py, ax, ay, bx, by):
     return np.sqrt(ex * ex + ey * ey), w
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _line_far2(limit, dx, dy):
+    """The squared cross product (``_off_line``) beyond which a point lies farther than ``limit``
+    from the line of a segment (dx, dy), so from the segment too: cheaper than the exact
+    distance, a division and a square root. The margin covers rounding."""
+    return (limit * (1 + 1e-6)) ** 2 * (dx * dx + dy * dy)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _off_line(px, py, ax, ay, dx, dy, far2):
+    """Whether point p lies beyond ``far2`` (``_line_far2``) of the line through a, (dx, dy)."""
+    cross = dx * (py - ay) - dy * (px - ax)
+    return cross * cross > far2
+
+
 @numba.njit(cache=True, nogil=True)
 def _nearest_edge(xu, yu, a, b, reach=np.inf):
     """Distance to, and index of, the nearest projected edge of every point; a point farther
     than ``reach`` from every edge gets an infinite distance (and edge 0).
 
-    Most points of a detection window lie in the data area, far from the ring: a cross product
-    per edge (a point is never nearer a segment than its line) rules those out before the exact
-    distance, a division and a square root."""
+    Most points of a detection window lie in the data area, far from the ring: ``_off_line``
+    rules those out before the exact distance."""
     n, m = xu.shape[0], a.shape[0]
     dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    far2 = (reach * (1 + 1e-6)) ** 2 * (dx * dx + dy * dy)  # the margin covers rounding
+    far2 = _line_far2(reach, dx, dy)
     dist, edge = np.full(n, np.inf), np.zeros(n, np.int64)
     for i in range(n):
         px, py = xu[i], yu[i]
         for e in range(m):
-            cross = dx[e] * (py - a[e, 1]) - dy[e] * (px - a[e, 0])
-            if cross * cross > far2[e]:
+            if _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], far2[e]):
                 continue
             d, _ = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
             if d < dist[i] and d <= reach:
@@ -155,26 +168,23 @@ def _assign(
     the first event that makes more than one indicator exceed half its gate (at or after
     ``due_us``), or at ``force_us`` once new events joined. Returns (index to resume from,
     whether it stopped)."""
-    # A point is never nearer a segment than the segment's line, so a cross product per edge
-    # rules out most of the eight before the exact distance (a division and a square root):
-    # first for the gate, then, only if no edge took the point, for the band.
+    # ``_off_line`` rules out most of the eight edges before the exact distance: first for the
+    # gate, then, only if no edge took the point, for the band.
     m = a.shape[0]
     dx, dy = np.empty(m), np.empty(m)
     gate_far2, band_far2 = np.empty(m), np.empty(m)
     late = np.zeros(m, np.bool_)
     for e in range(m):
         dx[e], dy[e] = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
-        L2 = dx[e] * dx[e] + dy[e] * dy[e]
-        gate_far2[e] = (gate[e] * (1 + 1e-6)) ** 2 * L2  # the margin covers rounding
-        band_far2[e] = (band[e] * (1 + 1e-6)) ** 2 * L2
+        gate_far2[e] = _line_far2(gate[e], dx[e], dy[e])
+        band_far2[e] = _line_far2(band[e], dx[e], dy[e])
         late[e] = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
     n_late = late.sum()  # kept up to date as events join, instead of recounted per event
     for i in range(start, t.shape[0]):
         px, py = xu[i], yu[i]
         near, on = False, False
         for e in range(m):
-            cross = dx[e] * (py - a[e, 1]) - dy[e] * (px - a[e, 0])
-            if cross * cross > gate_far2[e]:
+            if _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], gate_far2[e]):
                 continue
             d, w = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
             near = near or d <= band[e]
@@ -189,8 +199,7 @@ def _assign(
         for e in range(m):
             if near:
                 break
-            cross = dx[e] * (py - a[e, 1]) - dy[e] * (px - a[e, 0])
-            if cross * cross <= band_far2[e]:
+            if not _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], band_far2[e]):
                 d, _ = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
                 near = d <= band[e]
         if near:
