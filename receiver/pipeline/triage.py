@@ -36,35 +36,61 @@ _REBASE_US = 1 << 29
 surface is read at random for every event); the epoch moves on before they could overflow."""
 
 
+_BLOCK = 1024
+"""Events whose on-grid ones are gathered at a time (their records stay in the L1 cache)."""
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _burst(surface, e, epoch, gap_us, shift):
+    """Note event ``e`` in its pixel's burst times (ON only when the surface has one polarity)."""
+    d = 0 if e.p > 0 else 1
+    if d < surface.shape[2]:
+        ti = np.int32(e.t - epoch)
+        sy, sx = e.y >> shift, e.x >> shift
+        if ti - surface[sy, sx, d, 1] > gap_us:
+            surface[sy, sx, d, 0] = ti
+        surface[sy, sx, d, 1] = ti
+
+
 @numba.njit(cache=True, nogil=True)
 def _triage(events, surface, epoch, gap_us, tiles, shift, every):
     """Update ``surface[y >> shift, x >> shift, polarity] = (burst start, last event)`` from the
-    pixels on the stride's grid (ON only when the surface has one polarity); return the indices
-    of the events on the marked ``tiles``, of every ``every``-th event.
+    pixels on the stride's grid; return the indices of the events on the marked ``tiles``, of
+    every ``every``-th event (the first, then every ``every``-th).
 
     ``events`` is the structured chunk itself: numba reads each record's fields in one go, which
-    runs a third faster than four strided field views."""
-    selected = np.empty(events.shape[0], np.int64)  # pages are touched only as far as written
-    polarities = surface.shape[2]
-    off_grid = (1 << shift) - 1
+    runs a third faster than four strided field views. With a stride, whether an event lies on
+    the grid is a coin toss that a branch would mispredict ~2 ns at a time: each block's
+    on-grid events are first gathered without one."""
+    n = events.shape[0]
+    selected = np.empty(-(-n // every), np.int64)  # pages are touched only as far as written
     k = 0
-    countdown = 1  # the first event, then every ``every``-th
-    for i in range(events.shape[0]):
-        e = events[i]
-        xi, yi = e.x, e.y
-        d = 0 if e.p > 0 else 1
-        if d < polarities and ((xi | yi) & off_grid) == 0:
-            ti = np.int32(e.t - epoch)
-            sy, sx = yi >> shift, xi >> shift
-            if ti - surface[sy, sx, d, 1] > gap_us:
-                surface[sy, sx, d, 0] = ti
-            surface[sy, sx, d, 1] = ti
-        countdown -= 1
-        if countdown == 0:
-            countdown = every
-            if tiles[yi >> _SHIFT, xi >> _SHIFT]:
+    off_grid = (1 << shift) - 1
+    if not off_grid:
+        countdown = 1
+        for i in range(n):
+            e = events[i]
+            _burst(surface, e, epoch, gap_us, shift)
+            countdown -= 1
+            if countdown == 0:
+                countdown = every
                 selected[k] = i
-                k += 1
+                k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
+        return selected[:k]
+    on_grid = np.empty(_BLOCK, np.int64)
+    for b0 in range(0, n, _BLOCK):
+        b1 = min(b0 + _BLOCK, n)
+        g = 0
+        for i in range(b0, b1):
+            e = events[i]
+            on_grid[g] = i
+            g += ((e.x | e.y) & off_grid) == 0
+        for j in range(g):
+            _burst(surface, events[on_grid[j]], epoch, gap_us, shift)
+        for i in range(-(-b0 // every) * every, b1, every):
+            e = events[i]
+            selected[k] = i
+            k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
     return selected[:k]
 
 
