@@ -19,7 +19,13 @@ from receiver.pipeline.buffer import to_columns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.locate import Box, events_between, outline, quadrilateral
 from receiver.pipeline.pose import _residuals, project_ideal
-from receiver.pipeline.tracker import EdgeTracker, _assign, _capture_points, _nearest_edge
+from receiver.pipeline.tracker import (
+    EdgeTracker,
+    _assign,
+    _capture_points,
+    _nearest_edge,
+    _reassign,
+)
 from receiver.pipeline.triage import TILE, EventTriage
 from receiver.poses import make_pose
 
@@ -58,7 +64,7 @@ def _on_grid(surface: dict, stride: int) -> dict:
 @settings(max_examples=25, deadline=None)
 @given(
     st.integers(0, 2**32 - 1),
-    st.integers(1, 400),
+    st.integers(1, 3000),  # the triage gathers on-grid events by blocks of 1024
     st.booleans(),
     st.integers(1, 3),
     st.sampled_from([1, 2, 4]),
@@ -76,6 +82,27 @@ def test_triage_keeps_each_pixels_latest_burst_start(seed, n, both, pieces, stri
     got = {
         (int(x), int(y), 0 if p > 0 else 1): int(t)
         for t, x, y, p in zip(bursts["t"], bursts["x"], bursts["y"], bursts["p"], strict=True)
+    }
+    assert got == expected
+
+
+@pytest.mark.parametrize("stride", [1, 2, 4])
+def test_triage_keeps_every_on_grid_pixel_of_a_long_chunk(stride):
+    """Each pixel fires once, in random order, over several of the triage's blocks: every
+    on-grid one, however the grid pixels fall in the blocks, is a burst of its own."""
+    rng = np.random.default_rng(stride)
+    pixels = rng.permutation(WIDTH * HEIGHT)
+    events = make_events(np.arange(len(pixels)), pixels % WIDTH, pixels // WIDTH, [1] * len(pixels))
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, False)
+    triage.reset(0, stride)
+    triage(events)
+    bursts = triage.bursts(0, len(pixels), (0, WIDTH, 0, HEIGHT))
+    pixels = zip(bursts["x"].tolist(), bursts["y"].tolist(), strict=True)
+    got = dict(zip(pixels, bursts["t"].tolist(), strict=True))
+    expected = {
+        (int(e["x"]), int(e["y"])): int(e["t"])
+        for e in events
+        if e["x"] % stride == e["y"] % stride == 0
     }
     assert got == expected
 
@@ -165,21 +192,25 @@ def test_triage_hands_the_tracker_the_events_on_marked_tiles_as_columns():
         assert np.array_equal(near[field], expected[field])
 
 
+@pytest.mark.parametrize("stride", [1, 2])
 @pytest.mark.parametrize("per_ms", [50.0, 120.0, 1000.0])
-def test_the_trackers_events_are_thinned_evenly_to_their_budget(per_ms):
+def test_the_trackers_events_are_thinned_evenly_to_their_budget(per_ms, stride):
     """Every k-th near-edge event, k the least that keeps within ``per_ms`` per millisecond of
     the chunk, and every one of them when the chunk is within budget; the surfaces still take
-    every event."""
-    events = _stream(np.random.default_rng(4), 500)
+    every (on-grid) event."""
+    events = _stream(np.random.default_rng(4), 3000)  # several of the triage's blocks
     n = len(events)
     thinned, whole = (EventTriage(DISTORTED.undistort_table, GAP_US, True) for _ in range(2))
     for triage in (thinned, whole):
+        triage.reset(0, stride)
         triage._tiles[:] = True
     near = thinned(events, per_ms)
     every = whole(events)
     span_ms = (int(events["t"][-1]) - int(events["t"][0]) + 1) / 1000
     k = max(1, -(-n // int(per_ms * span_ms)))
-    assert np.array_equal(near["t"], every["t"][::k]) and len(near["t"]) <= per_ms * span_ms
+    for field in ("t", "x", "y"):
+        assert np.array_equal(near[field], every[field][::k])
+    assert len(near["t"]) <= per_ms * span_ms
     assert np.array_equal(thinned.surface, whole.surface)
 
 
@@ -357,6 +388,31 @@ def test_quadrilateral_of_a_blobs_outline_is_that_of_all_its_pixels(turn, half, 
     rng = np.random.default_rng(seed)
     image[rng.integers(34, 46, 20), rng.integers(34, 46, 20)] = 0  # holes: not on the outline
     assert np.array_equal(quadrilateral(outline(image)), quadrilateral(np.argwhere(image)[:, ::-1]))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 40))
+def test_rebinning_into_fewer_bins_keeps_each_bins_newest_event(seed, cap):
+    """Re-binning onto ``cap`` bins events that sat in 40 (a camera backing off): each new bin
+    keeps the newest of its events, although the old slots are in order along the edge, not in
+    time; stale events, and those beyond the gate, leave."""
+    rng = np.random.default_rng(seed)
+    a, b = np.array([[10.0, 20.0]]), np.array([[110.0, 20.0]])
+    old_x = np.sort(rng.uniform(10, 110, (1, 40)))
+    old_y = 20 + rng.uniform(-3, 3, (1, 40))
+    old_t = rng.integers(-1, 1000, (1, 40))  # -1: an empty slot
+    gate, since = np.array([2.0]), 100
+    slots = (np.zeros((1, cap)), np.zeros((1, cap)), np.full((1, cap), -1, np.int64))
+    sd, sum_d, n_valid = np.zeros((1, cap)), np.zeros(1), np.zeros(1, np.int64)
+    _reassign(old_x, old_y, old_t, since, a, b, gate, np.array([cap]), *slots, sd, sum_d, n_valid)
+    newest: dict[int, tuple[int, float]] = {}
+    for x, y, t in zip(old_x[0], old_y[0], old_t[0], strict=True):
+        s = min(int((x - 10) / 100 * cap), cap - 1)
+        if t >= since and abs(y - 20) <= gate[0] and t >= newest.get(s, (-1,))[0]:
+            newest[s] = (int(t), x)
+    sx, _, st_ = slots
+    assert {s: (int(st_[0, s]), sx[0, s]) for s in np.flatnonzero(st_[0] >= 0)} == newest
+    assert n_valid[0] == len(newest) and np.isclose(sum_d[0], sd[0][st_[0] >= 0].sum())
 
 
 @settings(max_examples=25, deadline=None)

@@ -213,37 +213,46 @@ def _assign(
     return t.shape[0], False
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _resum(e, st, sd, sum_d, n_valid):
+    """Recount edge ``e``'s cluster in slot order: re-binnings of the same slots then give the
+    same indicators bit for bit, whatever order their events arrived in."""
+    total, count = 0.0, 0
+    for s in range(st.shape[1]):
+        if st[e, s] >= 0:
+            total += sd[e, s]
+            count += 1
+    sum_d[e], n_valid[e] = total, count
+
+
 @numba.njit(cache=True, nogil=True)
 def _reassign(old_x, old_y, old_t, since_us, a, b, gate, cap, sx, sy, st, sd, sum_d, n_valid):
     """Move the old clusters' events not older than ``since_us`` into the new (empty) clusters,
-    each edge's oldest first so that the newest wins its bin, and each only onto the edge it was
-    on: ``_assign``'s binning for one edge, without its indicators and fit counts (the re-binned
-    events were counted in the fit already). Runs at every pose update."""
+    each only onto the edge it was on and the newest winning its bin: ``_assign``'s binning for
+    one edge, without its indicators and fit counts (the re-binned events were counted in the
+    fit already). Runs at every pose update."""
     for e in range(old_t.shape[0]):
-        keep = np.flatnonzero(old_t[e] >= since_us)
-        for i in keep[np.argsort(old_t[e][keep], kind="mergesort")]:
+        for i in range(old_t.shape[1]):
+            t = old_t[e, i]
+            if t < since_us:  # stale, or an empty slot (-1)
+                continue
             px, py = old_x[e, i], old_y[e, i]
             d, w = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
-            if d > gate[e]:
-                continue
             s = min(int(w * cap[e]), cap[e] - 1)
-            _bin(e, s, px, py, old_t[e, i], d, sx, sy, st, sd, sum_d, n_valid)
+            if d <= gate[e] and st[e, s] <= t:
+                sx[e, s], sy[e, s], st[e, s], sd[e, s] = px, py, t, d
+        _resum(e, st, sd, sum_d, n_valid)
 
 
 @numba.njit(cache=True, nogil=True)
 def _age_out(since_us, sx, sy, st, sd, sum_d, n_valid):
     """Empty the bins older than ``since_us`` in place: ``_reassign`` onto the same edges, where
-    every kept event lands in its own bin again. The sums are recomputed in the same (time)
-    order, so that the indicators match a full re-binning bit for bit."""
+    every kept event lands in its own bin again."""
     for e in range(st.shape[0]):
-        keep = np.flatnonzero(st[e] >= since_us)
-        total = 0.0
-        for i in keep[np.argsort(st[e][keep], kind="mergesort")]:
-            total += sd[e, i]
         for i in range(st.shape[1]):
             if st[e, i] < since_us:
                 sx[e, i], sy[e, i], st[e, i], sd[e, i] = 0.0, 0.0, -1, 0.0
-        sum_d[e], n_valid[e] = total, keep.shape[0]
+        _resum(e, st, sd, sum_d, n_valid)
 
 
 @dataclass
