@@ -180,8 +180,8 @@ def _assign(
                 continue
             on = True
             # Into bin s, replacing its older event in the count and distance sum. Written out
-            # here: a helper taking the six arrays costs a dozen atomic reference counts per
-            # call (numba cannot prune them around its branch), 2.5x this loop's time.
+            # here: as a helper taking the six arrays, numba kept a dozen atomic reference
+            # counts per call, which made this loop 2.5x slower.
             s = min(int(w * cap[e]), cap[e] - 1)
             if st[e, s] >= 0:
                 sum_d[e] -= sd[e, s]
