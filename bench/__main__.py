@@ -4,7 +4,8 @@
 cores), ``--scale standard`` (the paper's sensor; its streaming part takes half an hour, its
 hand-held parts hours), or ``--scale tiny`` (seconds, for tests). Results go to docs/
 (``--out`` to change): plots, raw results as JSON, the sections of BENCHMARKS.md, and
-RESULTS.md.
+RESULTS.md. The clips of an experiment are independent and run ``--jobs`` at a time, with the
+same results for any number of jobs.
 """
 
 from __future__ import annotations
@@ -12,8 +13,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -168,19 +171,33 @@ def _num(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x:.2f}"
 
 
+def _each(fn: Callable, calls: list[tuple], jobs: int) -> list:
+    """``fn(*args)`` for every ``args`` in ``calls``, in order, over ``jobs`` processes."""
+    if jobs <= 1 or len(calls) <= 1:
+        return [fn(*args) for args in calls]
+    with ProcessPoolExecutor(min(jobs, len(calls))) as pool:
+        futures = [pool.submit(fn, *args) for args in calls]
+        return [f.result() for f in futures]
+
+
+def _call(fn: Callable, *args: object) -> object:
+    return fn(*args)
+
+
 def _save(out: Path, name: str, records: list[dict]) -> None:
     (out / "results").mkdir(parents=True, exist_ok=True)
     (out / "results" / f"{name}.json").write_text(json.dumps(records, indent=1) + "\n")
 
 
-def run_streaming(plan: Plan, out: Path) -> tuple[str, str]:
-    points = [
-        streaming.run_point(profile, hz, n, lux, seed, plan.streaming_s, plan.sensor)
+def run_streaming(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
+    calls = [
+        (profile, hz, n, lux, seed, plan.streaming_s, plan.sensor)
         for profile, hz in plan.streaming_grid
         for n in plan.cells
         for lux in plan.lux
         for seed in range(plan.messages)
     ]
+    points = _each(streaming.run_point, calls, jobs)
     _save(out, "streaming", [p.to_dict() for p in points])
     plots.streaming(points, out / "streaming.png")
     rows = [
@@ -206,15 +223,17 @@ def run_streaming(plan: Plan, out: Path) -> tuple[str, str]:
     return "\n".join(rows) + "\n\n![streaming](streaming.png)\n", headline
 
 
-def run_localization(plan: Plan, out: Path) -> tuple[str, str]:
+def run_localization(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
     rows = [
         "| seq. | seed | flow paper px/ms | time s | R_rpe deg | t_rpe cm | t_ate cm | BER | "
         "decodable | frames seen / read | losses | paper: time s, R_rpe, t_rpe, t_ate, BER |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     results, figure = [], ""
-    for i, (seed, flow) in enumerate(localization.SEQUENCES[: plan.sequences]):
-        res, run = localization.run_sequence(seed, flow, plan.sequence_s, plan.sensor)
+    sequences = localization.SEQUENCES[: plan.sequences]
+    calls = [(seed, flow, plan.sequence_s, plan.sensor) for seed, flow in sequences]
+    runs = _each(localization.run_sequence, calls, jobs)
+    for i, ((seed, flow), (res, run)) in enumerate(zip(sequences, runs, strict=True)):
         results.append(res)
         paper = localization.PAPER_TABLE[i]
         rows.append(
@@ -244,22 +263,21 @@ def run_localization(plan: Plan, out: Path) -> tuple[str, str]:
     return "\n".join(rows) + figure + "\n", headline
 
 
-def run_baselines(plan: Plan, out: Path) -> tuple[str, str]:
-    runs = [
-        (
-            baselines.run_frame_baseline(family, blank, flow, seed, plan.baseline_s, plan.sensor),
-            seed,
-            flow,
-        )
+def run_baselines(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
+    frame = baselines.run_frame_baseline
+    todo = [
+        ((frame, family, blank, flow, seed, plan.baseline_s, plan.sensor), seed, flow)
         for family in baselines.code_families()
         for blank in (False, True)
         for seed, flow in enumerate(plan.flows)
     ]
-    runs += [
-        (baselines.run_event(profile, flow, seed, plan.event_baseline_s, plan.sensor), seed, flow)
+    todo += [
+        ((baselines.run_event, profile, flow, seed, plan.event_baseline_s, plan.sensor), seed, flow)
         for profile in baselines.EVENT_PROFILES
         for seed, flow in enumerate(plan.flows)
     ]
+    outcomes = _each(_call, [call for call, _, _ in todo], jobs)
+    runs = [(o, seed, flow) for o, (_, seed, flow) in zip(outcomes, todo, strict=True)]
     outcomes = [o for o, _, _ in runs]
     plots.comparison(outcomes, out / "comparison.png")
     _save(
@@ -328,6 +346,7 @@ def main(argv: list[str] | None = None) -> None:
         help="run only these experiments (the other sections are kept)",
     )
     parser.add_argument("--out", type=Path, default=DOCS, help="folder for plots and reports")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count(), help="clips run at once")
     args = parser.parse_args(argv)
     scale = "quick" if args.quick else args.scale
     plan, out = PLANS[scale], args.out
@@ -337,7 +356,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.only and name not in args.only:
             continue
         print(f"[bench] {title} ...", flush=True)
-        (body, headline), wall = _timed(lambda run=run: run(plan, out))
+        (body, headline), wall = _timed(lambda run=run: run(plan, out, args.jobs))
         body = (
             f"**In short:** {headline}\n\nScale `{scale}`: {plan}. Wall time {wall:.0f} s."
             f"\n\n{body}"

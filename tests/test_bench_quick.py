@@ -28,7 +28,7 @@ def _trajectory(screen: Slideshow, distance_m: float = 1.6):
 
 
 def test_tiny_run_writes_reports_and_plots(tmp_path):
-    main(["--scale", "tiny", "--out", str(tmp_path)])
+    main(["--scale", "tiny", "--out", str(tmp_path), "--jobs", "2"])
     for png in ("streaming.png", "comparison.png"):
         image = cv2.imread(str(tmp_path / png))
         assert image is not None and image.shape[0] > 200 and image.std() > 0, png
@@ -43,9 +43,11 @@ def test_tiny_run_writes_reports_and_plots(tmp_path):
         r["system"] for r in json.loads((tmp_path / "results" / "comparison.json").read_text())
     }
     assert {"QR v1-L", "QR v1-L + blank", "ours (events, N=16, paper)"} <= systems
-    # Rerunning one experiment keeps the others' sections.
-    main(["--scale", "tiny", "--out", str(tmp_path), "--only", "streaming"])
-    assert "<!-- bench:paper_comparison -->" in results.read_text()
+    # Rerunning one experiment keeps the others' sections; one job gives the same results.
+    comparison = (tmp_path / "results" / "comparison.json").read_text()
+    main(["--scale", "tiny", "--out", str(tmp_path), "--only", "comparison", "--jobs", "1"])
+    assert (tmp_path / "results" / "comparison.json").read_text() == comparison
+    assert "<!-- bench:paper_streaming -->" in results.read_text()
 
 
 @pytest.mark.parametrize("family", code_families(), ids=lambda f: f.name)

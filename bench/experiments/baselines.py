@@ -52,6 +52,9 @@ class CodeFamily:
         """Payload bits per code (what the throughput counts)."""
         return math.log2(self.capacity)
 
+    def __reduce__(self):
+        return code_family, (self.name,)  # by name: draw and read are closures
+
 
 def _qr_payload(i: int) -> str:
     return f"{i:017d}"  # 17 bytes: the byte-mode capacity of version 1 at ECC level L
@@ -97,6 +100,11 @@ def code_families() -> list[CodeFamily]:
         _aruco_family("AprilTag 36h11", cv2.aruco.DICT_APRILTAG_36h11),
         _aruco_family("ArUco 6x6", cv2.aruco.DICT_6X6_1000),
     ]
+
+
+def code_family(name: str) -> CodeFamily:
+    """The family called ``name`` (how one reaches a worker process)."""
+    return next(f for f in code_families() if f.name == name)
 
 
 def marker_flow(scene: Scene, sensor: Sensor, points: np.ndarray, t_us: np.ndarray) -> np.ndarray:
