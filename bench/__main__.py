@@ -278,7 +278,6 @@ def run_baselines(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
     ]
     outcomes = _each(_call, [call for call, _, _ in todo], jobs)
     runs = [(o, seed, flow) for o, (_, seed, flow) in zip(outcomes, todo, strict=True)]
-    outcomes = [o for o, _, _ in runs]
     plots.comparison(outcomes, out / "comparison.png")
     _save(
         out,
