@@ -97,8 +97,8 @@ def test_triage_keeps_every_on_grid_pixel_of_a_long_chunk(stride):
     triage.reset(0, stride)
     triage(events)
     bursts = triage.bursts(0, len(pixels), (0, WIDTH, 0, HEIGHT))
-    pixels = zip(bursts["x"].tolist(), bursts["y"].tolist(), strict=True)
-    got = dict(zip(pixels, bursts["t"].tolist(), strict=True))
+    keys = zip(bursts["x"].tolist(), bursts["y"].tolist(), strict=True)
+    got = dict(zip(keys, bursts["t"].tolist(), strict=True))
     expected = {
         (int(e["x"]), int(e["y"])): int(e["t"])
         for e in events
@@ -407,7 +407,7 @@ def test_rebinning_into_fewer_bins_keeps_each_bins_newest_event(seed, cap):
     _reassign(old_x, old_y, old_t, since, a, b, gate, np.array([cap]), *slots, sd, sum_d, n_valid)
     newest: dict[int, tuple[int, float]] = {}
     for x, y, t in zip(old_x[0], old_y[0], old_t[0], strict=True):
-        s = min(int((x - 10) / 100 * cap), cap - 1)
+        s = min(int((x - 10) * 100 / 100**2 * cap), cap - 1)  # as _to_segment rounds it
         if t >= since and abs(y - 20) <= gate[0] and t >= newest.get(s, (-1,))[0]:
             newest[s] = (int(t), x)
     sx, _, st_ = slots
