@@ -116,7 +116,8 @@ def main() -> None:
     if args.quick:
         args.flows, args.seeds, args.seconds = [0.5], 1, 1.0
     duration = args.seconds
-    tracker = hand_held_config().tracker
+    config = hand_held_config()
+    tracker = config.tracker
     clips = [(flow, seed, duration) for flow in args.flows for seed in range(args.seeds)]
     with ProcessPoolExecutor(args.jobs) as pool:  # clips are independent: one per core
         rows = list(pool.map(run_one, *zip(*clips, strict=True)))
@@ -147,13 +148,15 @@ def main() -> None:
         "locator square, captures onto the ring's edge events from scaled copies of it (and of "
         "the square a ring width smaller), where an event counts for an edge only with the "
         "polarity the burst's image flow gives that edge; among the fits whose edge events "
-        "agree with those polarities (>= 0.7; about +1 at the true pose) the one with the most "
+        f"agree with those polarities (>= {config.detector.min_edge_polarity:g}; about +1 at "
+        "the true pose) the one with the most "
         "events on the edges wins, and without one the attempt fails. Then the 'L' read through "
         "that pose, and a lock verified on the buffered frames (locator contrast, fit ratio). "
         "While it tracks, every frame also reads the locator ring in all four quarter turns, "
         "and tracking is lost when the canonical turn's median lead over the others, over the "
         "last three frames, falls below 0.5 (a tracked pose leads by ~1.5); a lock from a "
-        "detection under motion is also dropped if none of its first 20 frames passes its CRC. "
+        "detection under motion is also dropped if none of its first "
+        f"{config.decoder.probation_frames} frames passes its CRC. "
         "Without the polarities the capture often settled on the black ring around the white "
         "one: a pose a ring width too near that read the white ring as the 'L' a quarter turn "
         "off and passed every other check (issue 4; at 1 px/ms such locks were tracked for up "

@@ -66,7 +66,7 @@ def _triage(events, surface, epoch, gap_us, tiles, shift, every):
     selected = np.empty(-(-n // every), np.int64)  # pages are touched only as far as written
     k = 0
     off_grid = (1 << shift) - 1
-    if not off_grid:
+    if not off_grid:  # every event is on the grid: one pass (the blocks measured slower here)
         countdown = 1
         for i in range(n):
             e = events[i]
