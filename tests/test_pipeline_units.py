@@ -204,11 +204,24 @@ def test_locator_band_is_the_outer_cell_of_the_blinking_square():
 
 def test_frame_clock_follows_a_slightly_fast_display():
     clock = FrameClock(first_burst_us=1000.0, frame_us=10_000.0, rows=18)
-    assert not clock.settled
+    assert not clock.timed
     for m in range(6):
         clock.observe(m, 1000.0 + m * 10_010.0, slope_us=50.0)
-    assert clock.settled
+    assert clock.timed
     assert clock.period_us == pytest.approx(10_010.0) and clock.mid(10) == pytest.approx(101_100.0)
+
+
+@pytest.mark.parametrize("profile", ["paper", "fast"])
+def test_read_window_narrows_as_soon_as_one_frame_timed_the_clock(profile):
+    # Under motion pixels fire again within the wide search gate, and only their latest burst
+    # is kept: every frame read after the first timed one must use the narrow read gate.
+    config = ReceiverConfig(CameraModel(346, 260, K), cells=16, profile=profile)
+    reader = CellReader(config, first_burst_us=0.0)
+    searching = np.diff(reader.window(1))[0]
+    reader.clock.observe(0, 200.0, slope_us=0.0)
+    reading = np.diff(reader.window(1))[0]
+    assert reading == pytest.approx(np.diff(reader.gate)[0], abs=1)
+    assert reading < 0.8 * searching
 
 
 @pytest.mark.parametrize(
