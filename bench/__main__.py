@@ -67,9 +67,17 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   in the localization table, and in `receiver decode`'s report.json) tell why. The `paper`
   profile has no frame header, so one lost or repeated frame stalls it until the transmitter
   loops round.
-- A 60 Hz screen with a new code on every refresh never shows one whole code: the progressive
-  scan-out puts the top of the new code above the bottom of the previous one. That, more than
-  blur, is what blank frames fix for the frame camera.
+- A 60 Hz screen never shows a whole code to the frame camera's 4 ms exposure: its scan-out
+  takes 96% of the refresh, so all of a full-screen code's rows show the same refresh for only
+  ~2.2 ms (and the LCD rises with a 2.5 ms time constant). With a new code on every refresh,
+  the top of the new code sits above the bottom of the previous one; AprilTag and ArUco read it
+  anyway, because their white surround and black border stay put from code to code and their
+  error correction absorbs the rows still showing the previous code. With a blank refresh
+  between codes, the bottom of the code is still black or its top already fading: the tags'
+  border then lacks part of its white surround, and with motion blur on top (24 px over 4 ms at
+  6 px/ms, about one module) they fail. That is why the tags with blank frames fall from 100% at
+  1 px/ms to 20% at 6 px/ms while without them they stay at 96-100% (seen on the rendered
+  frames of the 6 px/ms clip); QR v1-L reads about as well either way.
 
 ## Where we fall short of the paper, and why
 
