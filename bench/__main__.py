@@ -26,6 +26,7 @@ from bench import plots
 from bench.experiments import baselines, localization, streaming
 from bench.experiments.eventcam import Sensor
 from bench.report import write_section
+from bench.tracking import WRONG_M
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 RESULTS_INTRO = """# What we measured
@@ -178,6 +179,14 @@ def _num(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x:.2f}"
 
 
+def _tracking(t: dict | None) -> str:
+    """Our receiver's lock, losses and tracked shares (``baselines.Outcome.tracking``)."""
+    if t is None:
+        return ""
+    lock = "never" if t["first_lock_s"] is None else f"{t['first_lock_s']:.2f}"
+    return f"{lock}, {t['losses']}, {t['tracked']:.0%} ({t['tracked_wrong']:.0%})"
+
+
 def _each(fn: Callable, calls: list[tuple], jobs: int) -> list:
     """``fn(*args)`` for every ``args`` in ``calls``, in order, over ``jobs`` processes."""
     if jobs <= 1 or len(calls) <= 1:
@@ -297,18 +306,20 @@ def run_baselines(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
                 "flow_px_per_ms": o.flow.tolist(),
                 "received": o.received.tolist(),
                 "throughput_bps": o.throughput_bps,
+                "tracking": o.tracking,
             }
             for o, seed, flow in runs
         ],
     )
     rows = [
-        "| system | seed | flow target paper px/ms | units sent | received | throughput bit/s |",
-        "|---|---|---|---|---|---|",
+        "| system | seed | flow target paper px/ms | units sent | received | throughput bit/s | "
+        f"ours: first lock s, losses, tracked (> {100 * WRONG_M:g} cm off) |",
+        "|---|---|---|---|---|---|---|",
     ]
     rows += [
         f"| {o.system} | {seed} | {flow:g} | {len(o.received)} | "
         f"{_pct(o.received.mean() if len(o.received) else None)} | "
-        f"{o.throughput_bps:.0f} |"
+        f"{o.throughput_bps:.0f} | {_tracking(o.tracking)} |"
         for o, seed, flow in runs
     ]
     by_system: dict[str, list[baselines.Outcome]] = {}

@@ -20,7 +20,7 @@ from bench.report import write_section
 from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.pipeline.config import ReceiverConfig, TrackerParams
-from receiver.pipeline.metrics import pose_errors
+from receiver.pipeline.metrics import held_s, pose_errors
 from receiver.pipeline.receiver import Receiver
 from receiver.pipeline.report import DecodeLog, FrameTruth
 from receiver.sim import Display, HandHeldMotion, Scene, SensorModel, simulate
@@ -33,7 +33,7 @@ CAMERA = CameraModel(240, 180, np.array([[208.0, 0, 120], [0, 208.0, 90], [0, 0,
 MESSAGE = bytes(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8))
 WRONG_M = 0.05
 """A pose this far from the truth counts as a wrong lock's."""
-_POSE_GAP_US = 5_000
+POSE_GAP_US = 5_000
 """Longest interval one pose stands for (the receiver emits at least one per ms while it tracks;
 longer gaps are time without a lock)."""
 
@@ -89,8 +89,7 @@ def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
         first = rec.pose_at(t[:1])[0][:3, 3] - np.asarray(log.poses[0])[:3, 3]
         row["first_cm"] = 100 * float(np.linalg.norm(first))
         off = np.linalg.norm(np.asarray(log.poses)[:, :3, 3] - rec.pose_at(t)[:, :3, 3], axis=1)
-        held = np.minimum(np.diff(t, append=t[-1]), _POSE_GAP_US)
-        row["wrong_ms"] = float(held[off > WRONG_M].sum() / 1e3)
+        row["wrong_ms"] = 1e3 * held_s(t, POSE_GAP_US, off > WRONG_M)
     if len(t) >= 3:
         err = pose_errors(t, np.array(log.poses), rec.pose_at(t), delta_us=10_000)
         tracked_s = (t[-1] - t[0]) / 1e6

@@ -13,6 +13,7 @@ from bench.experiments.baselines import code_families, run_frame_baseline
 from bench.experiments.eventcam import EventRun, camera
 from bench.experiments.streaming import FIT_SHARE, PAPER_CELL_PX, cell_px, paper_cell_px
 from bench.framecam import FrameCamera, Slideshow
+from bench.tracking import POSE_GAP_US
 from occ.marker import MarkerGeometry
 from receiver.camera import CameraModel
 from receiver.sim.motion import Rig, StaticMotion
@@ -43,6 +44,13 @@ def test_tiny_run_writes_reports_and_plots(tmp_path):
         r["system"] for r in json.loads((tmp_path / "results" / "comparison.json").read_text())
     }
     assert {"QR v1-L", "QR v1-L + blank", "ours (events, N=16, paper)"} <= systems
+    for row in json.loads((tmp_path / "results" / "comparison.json").read_text()):
+        tracking = row["tracking"]
+        if row["system"].startswith("ours"):  # why frames were missed: lock, losses, tracking
+            assert 0 <= tracking["tracked_wrong"] <= tracking["tracked"] <= 1
+            assert tracking["losses"] >= 0
+        else:
+            assert tracking is None
     # Rerunning one experiment keeps the others' sections; one job gives the same results.
     comparison = (tmp_path / "results" / "comparison.json").read_text()
     main(["--scale", "tiny", "--out", str(tmp_path), "--only", "comparison", "--jobs", "1"])
@@ -126,6 +134,16 @@ def test_goodput_counts_the_frames_that_carried_the_message():
     assert _run([done], 0.2).goodput_bps(8000, 0.2) == pytest.approx(8000)
     assert _run([{**done, "verified": False}], 0.2).goodput_bps(8000, 0.2) == 0.0
     assert _run([], None).goodput_bps(8000, 0.2) == 0.0
+
+
+def test_tracked_time_counts_each_pose_until_the_next_but_not_across_a_loss():
+    t = np.array([0, 1000, 2000, 12_000, 13_000])  # 10 ms without a pose: the lock was lost
+    truth = np.repeat(np.eye(4)[None], len(t), axis=0)
+    poses = truth.copy()
+    poses[1, 0, 3] = 0.2  # one pose 20 cm off
+    run = EventRun({}, t, poses, truth, np.empty((0, 2)), None, 0)
+    assert run.tracked_s() == pytest.approx((1 + 1 + POSE_GAP_US / 1000 + 1) / 1000)
+    assert run.tracked_s(wrong=True) == pytest.approx(0.001)
 
 
 def test_pose_errors_match_evo():

@@ -130,6 +130,9 @@ class Outcome:
     """Payload bits delivered per second (codes: received codes x payload bits; ours: verified
     message bits after FEC)."""
     wall_s: float
+    tracking: dict[str, float | int | None] | None = None
+    """Ours only, to say why frames were missed: the first lock (s), tracking losses, and the
+    shares of the clip tracked and tracked more than ``WRONG_M`` off the truth."""
 
 
 @lru_cache(maxsize=8)
@@ -200,4 +203,11 @@ def run_event(profile: str, flow: float, seed: int, duration_s: float, sensor: S
         motion, sensor, motion.rig.corners, (np.array(shown, float) + 0.5) * period
     )
     goodput = run.goodput_bps(len(message) * 8, enc.profile.data_every * period / 1e6)
-    return Outcome(f"ours (events, N=16, {profile})", flow_px, got, goodput, run.wall_s)
+    tracking = {
+        "first_lock_s": run.report["time_to_lock_s"],
+        "losses": run.report["tracking_losses"],
+        "tracked": run.tracked_s() / duration_s,
+        "tracked_wrong": run.tracked_s(wrong=True) / duration_s,
+    }
+    name = f"ours (events, N=16, {profile})"
+    return Outcome(name, flow_px, got, goodput, run.wall_s, tracking)

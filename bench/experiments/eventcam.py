@@ -7,11 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.tracking import hand_held_config
+from bench.tracking import POSE_GAP_US, WRONG_M, hand_held_config
 from occ.profiles import get_profile
 from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.pipeline.config import ReceiverConfig, TrackerParams
+from receiver.pipeline.metrics import held_s
 from receiver.pipeline.receiver import FrameOutput, Receiver
 from receiver.pipeline.report import DecodeLog, FrameTruth
 from receiver.sim import HandHeldMotion, Scene, SensorModel, simulate
@@ -97,6 +98,11 @@ class EventRun:
     """When the receiver read its first data frame (accepted or not), on the clock of the
     report's times (seconds since the first event)."""
     wall_s: float
+
+    def tracked_s(self, wrong: bool = False) -> float:
+        """Seconds the receiver held a pose (``wrong``: one more than ``WRONG_M`` off)."""
+        off = np.linalg.norm(self.poses[:, :3, 3] - self.truth[:, :3, 3], axis=1)
+        return held_s(self.pose_t_us, POSE_GAP_US, off > WRONG_M if wrong else None)
 
     def goodput_bps(self, message_bits: int, frame_s: float) -> float:
         """The first verified message's bits over the time its frames took to stream, from the
