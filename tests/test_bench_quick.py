@@ -40,11 +40,10 @@ def test_tiny_run_writes_reports_and_plots(tmp_path):
     for name in ("streaming", "localization", "comparison"):
         assert f"<!-- bench:paper_{name} -->" in bench_md
         assert json.loads((tmp_path / "results" / f"{name}.json").read_text()) is not None
-    systems = {
-        r["system"] for r in json.loads((tmp_path / "results" / "comparison.json").read_text())
-    }
+    compared = json.loads((tmp_path / "results" / "comparison.json").read_text())
+    systems = {r["system"] for r in compared}
     assert {"QR v1-L", "QR v1-L + blank", "ours (events, N=16, paper)"} <= systems
-    for row in json.loads((tmp_path / "results" / "comparison.json").read_text()):
+    for row in compared:
         tracking = row["tracking"]
         if row["system"].startswith("ours"):  # why frames were missed: lock, losses, tracking
             assert 0 <= tracking["tracked_wrong"] <= tracking["tracked"] <= 1

@@ -44,7 +44,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def held_s(t_us: np.ndarray, max_gap_us: int, where: np.ndarray | None = None) -> float:
     """Seconds the poses at ``t_us`` stand for, each until the next one but at most
     ``max_gap_us`` (a longer gap is time without a lock); only the poses ``where`` is True."""
-    held = np.minimum(np.diff(t_us, append=t_us[-1:]), max_gap_us) if len(t_us) else t_us
+    held = np.minimum(np.diff(t_us, append=t_us[-1:]), max_gap_us)  # the last pose: 0
     return float(held.sum() if where is None else held[where].sum()) / 1e6
 
 
