@@ -120,7 +120,7 @@ def _moving_marker(flow, duration_us=70_000, seed=0):
     return ev[np.argsort(ev["t"], kind="stable")]
 
 
-@pytest.mark.parametrize("flow", [(0.5, -0.3), (-1.5, 1.0)])
+@pytest.mark.parametrize("flow", [(0.5, -0.3), (-1.5, 1.0), (6.0, -4.0), (-9.0, 2.0)])
 def test_motion_flow_recovers_the_translation_of_an_outline(flow):
     rng = np.random.default_rng(1)
     ev = _outline(rng, 20_000, 0, 13_000, (60, 40), 80, flow, lambda n: -np.ones(n, np.int8))

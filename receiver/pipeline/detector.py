@@ -75,7 +75,9 @@ pulls the ring's inner edge onto the outer one (or the locator's), so neighbours
 (Wider scales, with the best 'L' reading choosing among them, locked wrongly more often: the
 largest of more noisy readings passes more wrong fits.)"""
 _CAPTURE_HALF_US = 1000
-"""Half the span of edge events a capture uses: the ring moves about a pixel per ms."""
+"""Half the span of edge events a capture uses, at most: the span over which the ring moves a
+pixel at the burst's flow, from a quarter to a whole millisecond (a capture fits the smeared
+ring's middle; at 6 px/ms a fixed millisecond smeared it over 12 px)."""
 _CAPTURE_SAMPLE = 30_000
 """Events a capture reads at most (every k-th): a megapixel sensor fires millions around the
 burst, and a pose of eight edges needs far fewer."""
@@ -488,7 +490,7 @@ def _detect_moving(
     check_quadrilateral(quad, params)
     tb = round(burst.t_us)
     world = geo.locator_corners(config.marker_size_m)
-    half = _CAPTURE_HALF_US
+    half = int(np.clip(1e3 / max(np.linalg.norm(burst.flow), 1e-9), 250, _CAPTURE_HALF_US))
     ring_events = to_columns(
         events_between(parts, tb - half, tb + half, most=_CAPTURE_SAMPLE),
         config.camera.undistort_table,

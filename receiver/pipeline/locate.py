@@ -34,10 +34,13 @@ import numpy as np
 from receiver.pipeline.buffer import first_at
 from receiver.pipeline.config import DetectorParams
 
-MAX_FLOW_PX_PER_MS = 2.5
-"""Largest image flow searched: a brisk hand-held sweep of a marker at arm's length."""
+MAX_FLOW_PX_PER_MS = 12.0
+"""Largest image flow searched: the peaks of a fast sweep on the paper's 1280x720 sensor (its
+6 px/ms clips peak at 9-12). At 2.5 px/ms, the old bound, such a burst stayed smeared over
+tens of pixels and detection waited for the motion to slow down."""
 _FLOW_LEVELS = (
-    (0.5, 5, 4.0, 5_000),
+    (1.5, 8, 12.0, 5_000),
+    (0.5, 2, 4.0, 5_000),
     (0.25, 1, 2.0, 5_000),
     (0.1, 2, 1.0, 30_000),
     (0.04, 2, 1.0, 30_000),
@@ -45,7 +48,7 @@ _FLOW_LEVELS = (
 """Coarse to fine search of the flow: (step px/ms, steps each way, image bin px, events). Each
 grid step moves the burst's edge events by less than a bin at the window's edges (0.2 blink
 period: 6.7 ms at a 60 Hz refresh); a few thousand events outline the ring well enough for the
-coarse levels."""
+coarse levels, and each level's reach covers half the step of the one before."""
 _MIN_GAIN = 1.05
 """A flow must sharpen the image by this factor over zero flow, or the camera counts as still."""
 _GAIN_BIN_PX = 2.0
