@@ -20,6 +20,7 @@ from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.locate import Box, events_between, outline, quadrilateral
 from receiver.pipeline.pose import _residuals, project_ideal
 from receiver.pipeline.tracker import (
+    _CARRY_US,
     EdgeTracker,
     _assign,
     _capture_points,
@@ -453,19 +454,27 @@ def _distance(px: float, py: float, a: np.ndarray, b: np.ndarray) -> tuple[float
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(0, 2**32 - 1))
-def test_cluster_assignment_matches_a_plain_loop(seed):
+@given(st.integers(0, 2**32 - 1), st.booleans())
+def test_cluster_assignment_matches_a_plain_loop(seed, moving):
     """The compiled assignment skips far edges by their lines; a loop that measures every edge
-    must give the same clusters and the same fit counts."""
+    must give the same clusters and the same fit counts. Moving edges (up to ~10 px/ms) carry
+    each point back to the time the edges hold, by ``_CARRY_US`` at most."""
     tracker, xu, yu = _tracker_and_points(seed, 300)
-    t = np.arange(len(xu), dtype=np.int64)
+    t = np.arange(len(xu), dtype=np.int64) * 10  # 0 .. 3 ms
+    ref_us = 1000
+    rng = np.random.default_rng(seed)
+    va, vb = rng.normal(0, 0.005 * moving, (2, 8, 2))  # px/us
     gate, band, cap = tracker._gate, tracker._band, tracker._cap
     expected_t = np.full(tracker._slots[2].shape, -1)
     near_count = on_count = 0
     for i in range(len(t)):
         near = on = False
+        dt = np.clip(t[i] - ref_us, -_CARRY_US, _CARRY_US)
         for e in range(8):
-            d, w = _distance(xu[i], yu[i], tracker._a[e], tracker._b[e])
+            a, b = tracker._a[e], tracker._b[e]
+            w0 = _distance(xu[i], yu[i], a, b)[1]
+            p = np.array([xu[i], yu[i]]) - (va[e] + w0 * (vb[e] - va[e])) * dt
+            d, w = _distance(*p, a, b)
             near |= d <= band[e]
             if d <= gate[e]:
                 on = True
@@ -474,7 +483,8 @@ def test_cluster_assignment_matches_a_plain_loop(seed):
         on_count += near and on
     sx, sy, st_, sd, sum_d, n_valid = tracker._slots
     fit = np.zeros(3, np.int64)
-    args = (tracker._a, tracker._b, gate, band, cap, sx, sy, st_, sd, sum_d, n_valid, fit)
+    a, b = tracker._a, tracker._b
+    args = (a, b, va, vb, ref_us, gate, band, cap, sx, sy, st_, sd, sum_d, n_valid, fit)
     _assign(xu, yu, t, 0, *args, 1 << 62, 1 << 62, 0.25)
     assert np.array_equal(st_, expected_t)
     assert fit[:2].tolist() == [near_count, on_count]

@@ -21,7 +21,7 @@ injected, the decoder's own floor goes from ~26 % to ~0.2 % BER at 0.5 px/ms):
 - the frame is read as soon as that gate has passed, because the triage keeps each pixel's
   latest burst only and motion starts new ones within a refresh;
 - the grid is shifted by the sub-cell offset that shows the locator ring sharpest, because the
-  tracked pose trails the camera by a fraction of a millisecond.
+  tracked pose can sit a fraction of a cell off.
 
 - ``paper`` / ``robust`` (data frame + blank frame): ON bursts only; a white cell lights up.
 - ``fast`` (one differential symbol per refresh): bursts of either polarity; a cell that toggles
@@ -77,8 +77,8 @@ _NO_SHIFT = _ALIGN_SHIFTS[:1]
 _ALIGN_LOOKBACK_US = 5000
 _ALIGN_MIN_MOTION = 0.25
 """The shift search runs only when the grid moved this many cells in the last
-``_ALIGN_LOOKBACK_US``: a pose lag of a fraction of a millisecond then trails by a tenth of a
-cell or more, the search's step. A still camera skips it (it costs a count per shift)."""
+``_ALIGN_LOOKBACK_US``: a pose error of a fraction of a millisecond's motion is then a tenth
+of a cell or more, the search's step. A still camera skips it (it costs a count per shift)."""
 _STILL_CELLS = 0.05
 """Below this grid motion in ``_ALIGN_LOOKBACK_US`` a frame is unwarped with one pose: the
 grid then moves a hundredth of a cell within a frame's gate."""
@@ -418,8 +418,8 @@ class CellReader:
         if not still:
             steps = max(1, int(np.ceil((t1 - t0) / self.config.decoder.step_us)))
         edges = np.linspace(t0, t1, steps + 1)
-        # The pose of a step is the latest one before its end: the tracked pose trails the camera.
-        poses = [pose_at(b) for b in edges[1:]]
+        # A step's pose is the tracked one at its middle (``pose_at`` interpolates the updates).
+        poses = [pose_at(b) for b in (edges[1:] + edges[:-1]) / 2]
         to_grid = np.stack([self._to_grid(T) for T in poses])
         u, v = _grid_coords(t, ev["xu"], ev["yu"], edges, to_grid)
         if self._rises(m):
@@ -451,7 +451,7 @@ class CellReader:
         from 4 to 9 pixel centres, which swings an area-normalised density by a factor of two
         (the 240 Hz, N = 96 link: BER 7e-3 -> 0). The count is kept until the grid moves by
         ``_RECOUNT_CELLS``. A moving grid takes the cell's image area instead: its pixels sweep
-        across the cell borders and the tracked pose trails, so which pixel centres fall
+        across the cell borders and the tracked pose is a little off, so which pixel centres fall
         inside is a guess, and the smooth expectation reads better (hand-held at 0.5 px/ms:
         BER 3.0e-2 counted, 1.8e-2 by area)."""
         n, margin, s = self.n, self.config.decoder.cell_margin, self.stride
@@ -482,9 +482,9 @@ class CellReader:
 
     def _sharpest(self, density: np.ndarray) -> int:
         """Index of the shifted grid whose (shifts, n, n) ``density`` shows the locator ring
-        sharpest. The tracked pose trails a moving camera by a fraction of a millisecond (a
-        quarter of a 4 px cell at 0.5 px/ms), enough to light black cells' inner parts from
-        their white neighbours; the ring's known cells pin the grid back."""
+        sharpest. The tracked pose of a moving camera can sit a fraction of a cell off, enough
+        to light black cells' inner parts from their white neighbours; the ring's known cells
+        pin the grid back."""
         if len(density) == 1:
             return 0
         scores = self._ring_contrast(density)

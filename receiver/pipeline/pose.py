@@ -32,6 +32,14 @@ def plane_homography(T_cam_world: np.ndarray, K: np.ndarray) -> np.ndarray:
     return K @ T_cam_world[:3, [0, 1, 3]]
 
 
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, f: float) -> np.ndarray:
+    """The pose a share ``f`` of the way from ``T0`` to ``T1``: turned about their relative
+    rotation's axis, translated along the line between them."""
+    w, _ = cv2.Rodrigues(T0[:3, :3].T @ T1[:3, :3])
+    R, _ = cv2.Rodrigues(f * w)
+    return make_pose(T0[:3, :3] @ R, T0[:3, 3] + f * (T1[:3, 3] - T0[:3, 3]))
+
+
 def project_ideal(T_cam_world: np.ndarray, K: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Ideal pixels (..., 2) of marker points (..., 3); NaN behind the camera."""
     flat = np.ascontiguousarray(points, np.float64).reshape(-1, 3)

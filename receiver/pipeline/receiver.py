@@ -38,7 +38,7 @@ from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.decoder import CellReader, FrameRead, read_stride
 from receiver.pipeline.detector import Detection, MarkerNotFound, detect
 from receiver.pipeline.filters import EventFilter
-from receiver.pipeline.pose import project_ideal
+from receiver.pipeline.pose import interpolate_pose, project_ideal
 from receiver.pipeline.tracker import EdgeTracker
 from receiver.pipeline.triage import EventTriage
 from receiver.poses import invert
@@ -198,7 +198,7 @@ class Receiver:
         only if the inner locator shows in one of them and tracking survives them; otherwise
         this raises ``MarkerNotFound`` (a failed detection, not a loss)."""
         T, t_lock = found.T_cam_world, found.t_us
-        self._tracker = EdgeTracker(self.config, T, t_lock)
+        self._tracker = EdgeTracker(self.config, T, t_lock, found.flow_px_per_ms)
         if not found.moving:
             with self._cpu("lock"):  # a still detection may lag a slow drift: snap to the ring
                 recent = self._buffer.between(now - self.config.tracker.capture_us, now + 1)
@@ -392,9 +392,14 @@ class Receiver:
 
     # --- poses -------------------------------------------------------------------------------
     def pose_at(self, t_us: float) -> np.ndarray:
-        """T_cam_world in effect at ``t_us`` (the latest update not after it)."""
+        """T_cam_world at ``t_us``: interpolated between the updates around it, or the nearest
+        one outside them. Under motion updates come ~1 ms apart, over which a 12 px/ms flow
+        moves the marker half a cell."""
         i = bisect.bisect_right(self._pose_t, t_us) - 1
-        return self._pose_T[max(i, 0)]
+        if i < 0 or i + 1 == len(self._pose_t):
+            return self._pose_T[max(i, 0)]
+        t0, t1 = self._pose_t[i], self._pose_t[i + 1]
+        return interpolate_pose(self._pose_T[i], self._pose_T[i + 1], (t_us - t0) / (t1 - t0))
 
     def _trim_poses(self) -> None:
         span = self._buffer.span
