@@ -45,8 +45,9 @@ _CAPTURE_MIN_EVENTS = 50
 _FORCE_MIN_NEW = 16
 """Events that must have joined the clusters before a timed (not indicator-driven) update."""
 _VELOCITY_SPAN_US = 2000
-"""The edges' image velocity is fitted to the poses of this recent span (at 4 kHz, up to eight:
-a pose's ~0.3 px of jitter then moves the velocity by ~0.3 px/ms)."""
+"""The edges' image velocity is fitted to the poses of this recent span, and at least to the
+latest three (under motion the updates come every 0.25-1 ms: a pose's ~0.3 px of jitter then
+moves the velocity by ~0.2 px/ms)."""
 _CARRY_US = 1000
 """An event is carried along its edge's motion for at most this long. A slot can hold an event
 for ``max_age_us`` (30 ms), and carried that long, the velocity's jitter would move it pixels:
@@ -189,7 +190,8 @@ def _assign(
         band_far2[e] = _line_far2(band[e], dx[e], dy[e])
         late[e] = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
     n_late = late.sum()  # kept up to date as events join, instead of recounted per event
-    # Each edge's velocity where a point lies along it, between its ends' ``va`` and ``vb``.
+    # Where a point lies along an edge (``along``: 1 / length^2) sets its velocity there,
+    # between the ends' ``va`` and ``vb``.
     along = np.where(dx * dx + dy * dy > 0, 1 / (dx * dx + dy * dy), 0.0)
     dv = vb - va
     qx, qy = np.empty(m), np.empty(m)
@@ -502,11 +504,11 @@ class EdgeTracker:
         return sx, sy
 
     def _fit_velocity(self, now_us: int) -> None:
-        """Fit the edges' ends' image velocity to the poses of the last ``_VELOCITY_SPAN_US``
-        (least squares, a line per coordinate); fewer than three poses keep the old one."""
+        """Fit the edges' ends' image velocity to the poses of the last ``_VELOCITY_SPAN_US``,
+        or the last three (least squares, a line per coordinate); until three, keep the old."""
         recent = self._recent
         recent.append((now_us, np.concatenate([self._a, self._b])))
-        while now_us - recent[0][0] > _VELOCITY_SPAN_US:
+        while len(recent) > 3 and now_us - recent[0][0] > _VELOCITY_SPAN_US:
             recent.popleft()
         if len(recent) < 3:
             return
