@@ -58,12 +58,18 @@ left its gate anyway."""
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _along(px, py, ax, ay, dx, dy):
+    """Position (0..1) of point p's nearest point on the segment a -> a + (dx, dy)."""
+    L2 = dx * dx + dy * dy
+    w = ((px - ax) * dx + (py - ay) * dy) / L2 if L2 > 0 else 0.0
+    return min(max(w, 0.0), 1.0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _to_segment(px, py, ax, ay, bx, by):
     """(distance, position along the segment in 0..1) of point p to segment ab."""
     dx, dy = bx - ax, by - ay
-    L2 = dx * dx + dy * dy
-    w = ((px - ax) * dx + (py - ay) * dy) / L2 if L2 > 0 else 0.0
-    w = min(max(w, 0.0), 1.0)
+    w = _along(px, py, ax, ay, dx, dy)
     ex, ey = ax + w * dx - px, ay + w * dy - py
     return np.sqrt(ex * ex + ey * ey), w
 
@@ -190,16 +196,12 @@ def _assign(
         band_far2[e] = _line_far2(band[e], dx[e], dy[e])
         late[e] = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
     n_late = late.sum()  # kept up to date as events join, instead of recounted per event
-    # Where a point lies along an edge (``along``: 1 / length^2) sets its velocity there,
-    # between the ends' ``va`` and ``vb``.
-    along = np.where(dx * dx + dy * dy > 0, 1 / (dx * dx + dy * dy), 0.0)
-    dv = vb - va
+    dv = vb - va  # an edge's velocity varies linearly from ``va`` to ``vb`` along it
     qx, qy = np.empty(m), np.empty(m)
     for i in range(start, t.shape[0]):
         dt = float(min(max(t[i] - ref_us, -_CARRY_US), _CARRY_US))
         for e in range(m):  # the event as each edge's motion places it at ``ref_us``
-            w = ((xu[i] - a[e, 0]) * dx[e] + (yu[i] - a[e, 1]) * dy[e]) * along[e]
-            w = min(max(w, 0.0), 1.0)
+            w = _along(xu[i], yu[i], a[e, 0], a[e, 1], dx[e], dy[e])
             qx[e] = xu[i] - (va[e, 0] + w * dv[e, 0]) * dt
             qy[e] = yu[i] - (va[e, 1] + w * dv[e, 1]) * dt
         near, on = False, False
@@ -463,7 +465,7 @@ class EdgeTracker:
     def _update(self, now_us: int) -> TrackUpdate | None:
         """Re-solve the pose, unless too few edges hold fresh events (sensor noise alone must not
         move a camera that stands still)."""
-        sx, sy, st, _, _, _ = self._slots
+        st = self._slots[2]
         self.last_update_us = now_us
         self._fit[2] = 0
         fresh = st >= max(0, now_us - self.config.tracker.max_age_us)  # -1: empty bin
