@@ -200,10 +200,11 @@ def _assign(
     qx, qy = np.empty(m), np.empty(m)
     for i in range(start, t.shape[0]):
         dt = float(min(max(t[i] - ref_us, -_CARRY_US), _CARRY_US))
+        x, y = np.float64(xu[i]), np.float64(yu[i])
         for e in range(m):  # the event as each edge's motion places it at ``ref_us``
-            w = _along(xu[i], yu[i], a[e, 0], a[e, 1], dx[e], dy[e])
-            qx[e] = xu[i] - (va[e, 0] + w * dv[e, 0]) * dt
-            qy[e] = yu[i] - (va[e, 1] + w * dv[e, 1]) * dt
+            w = _along(x, y, a[e, 0], a[e, 1], dx[e], dy[e])
+            qx[e] = x - (va[e, 0] + w * dv[e, 0]) * dt
+            qy[e] = y - (va[e, 1] + w * dv[e, 1]) * dt
         near, on = False, False
         for e in range(m):
             px, py = qx[e], qy[e]
@@ -285,6 +286,63 @@ def _age_out(since_us, sx, sy, st, sd, sum_d, n_valid):
             if st[e, i] < since_us:
                 sx[e, i], sy[e, i], st[e, i], sd[e, i] = 0.0, 0.0, -1, 0.0
         _resum(e, st, sd, sum_d, n_valid)
+
+
+@numba.njit(cache=True, nogil=True)
+def _supported_edges(st, since_us, cap, min_fill):
+    """How many edges hold at least ``max(3, min_fill * cap)`` events not older than
+    ``since_us``."""
+    count = 0
+    for e in range(st.shape[0]):
+        fresh = 0
+        for s in range(st.shape[1]):
+            fresh += st[e, s] >= since_us
+        count += fresh >= max(3, min_fill * cap[e])
+    return count
+
+
+@numba.njit(cache=True, nogil=True)
+def _fresh_points(sx, sy, st, since_us):
+    """(points (n, 2), their edges) of the slots not older than ``since_us``, edge by edge."""
+    n = 0
+    for e in range(st.shape[0]):
+        for s in range(st.shape[1]):
+            n += st[e, s] >= since_us
+    pts, edge = np.empty((n, 2)), np.empty(n, np.int64)
+    k = 0
+    for e in range(st.shape[0]):
+        for s in range(st.shape[1]):
+            if st[e, s] >= since_us:
+                pts[k, 0], pts[k, 1], edge[k] = sx[e, s], sy[e, s], e
+                k += 1
+    return pts, edge
+
+
+@numba.njit(cache=True, nogil=True)
+def _carry(sx, sy, st, cap, va, vb, ref_us, now_us):
+    """Carry the slots' events, placed as of ``ref_us``, forward to ``now_us`` along the edges'
+    motion (an event ``_CARRY_US`` from its own time at most), in place; a slot's place along
+    its edge is its bin's centre."""
+    for e in range(st.shape[0]):
+        for s in range(cap[e]):
+            if st[e, s] < 0:
+                continue
+            dt = min(max(now_us - st[e, s], -_CARRY_US), _CARRY_US)
+            dt -= min(max(ref_us - st[e, s], -_CARRY_US), _CARRY_US)
+            w = (s + 0.5) / cap[e]
+            sx[e, s] += (va[e, 0] + w * (vb[e, 0] - va[e, 0])) * dt
+            sy[e, s] += (va[e, 1] + w * (vb[e, 1] - va[e, 1])) * dt
+
+
+@numba.njit(cache=True, nogil=True)
+def _slopes(t, y):
+    """Least-squares slope over times ``t`` (k,) of each of the series ``y`` (k, ...)."""
+    flat = y.reshape(t.shape[0], -1)
+    tc = t - t.mean()
+    out = np.zeros(flat.shape[1])
+    for i in range(t.shape[0]):
+        out += tc[i] * flat[i]
+    return (out / np.dot(tc, tc)).reshape(y.shape[1:])
 
 
 @dataclass
@@ -465,17 +523,15 @@ class EdgeTracker:
     def _update(self, now_us: int) -> TrackUpdate | None:
         """Re-solve the pose, unless too few edges hold fresh events (sensor noise alone must not
         move a camera that stands still)."""
-        st = self._slots[2]
+        sx, sy, st = self._slots[:3]
         self.last_update_us = now_us
         self._fit[2] = 0
-        fresh = st >= max(0, now_us - self.config.tracker.max_age_us)  # -1: empty bin
-        supported = fresh.sum(axis=1) >= np.maximum(3, _MIN_FILL * self._cap)
-        if supported.sum() < _MIN_EDGES:
+        since = max(0, now_us - self.config.tracker.max_age_us)
+        if _supported_edges(st, since, self._cap, _MIN_FILL) < _MIN_EDGES:
             self._age_out(now_us)
             return None
-        sx, sy = self._carry(now_us)
-        edge = np.nonzero(fresh)[0]
-        pts = np.stack([sx[fresh], sy[fresh]], 1)
+        _carry(sx, sy, st, self._cap, self._va, self._vb, self._ref_us, now_us)
+        pts, edge = _fresh_points(sx, sy, st, since)
         T, cost = refine_pose(
             self.T_cam_world,
             self.K,
@@ -490,21 +546,6 @@ class EdgeTracker:
         self._fit_velocity(now_us)
         return TrackUpdate(now_us, T, cost, len(edge))
 
-    def _carry(self, now_us: int) -> tuple[np.ndarray, np.ndarray]:
-        """Carry the clusters' events, placed as of ``_ref_us``, forward to ``now_us`` along
-        the edges' motion (an event ``_CARRY_US`` from its own time at most); a slot's place
-        along its edge is its bin's centre. Updates the slots in place and returns their
-        coordinates."""
-        sx, sy, st = self._slots[0], self._slots[1], self._slots[2]
-        if np.any(self._va) or np.any(self._vb):
-            dt = np.clip(now_us - st, -_CARRY_US, _CARRY_US)
-            dt -= np.clip(self._ref_us - st, -_CARRY_US, _CARRY_US)
-            w = (np.arange(sx.shape[1]) + 0.5) / self._cap[:, None]  # (8, width)
-            v = self._va[:, None, :] + w[..., None] * (self._vb - self._va)[:, None, :]
-            sx += v[..., 0] * dt
-            sy += v[..., 1] * dt
-        return sx, sy
-
     def _fit_velocity(self, now_us: int) -> None:
         """Fit the edges' ends' image velocity to the poses of the last ``_VELOCITY_SPAN_US``,
         or the last three (least squares, a line per coordinate); until three, keep the old."""
@@ -514,8 +555,5 @@ class EdgeTracker:
             recent.popleft()
         if len(recent) < 3:
             return
-        t = np.array([r[0] for r in recent], np.float64)
-        ends = np.stack([r[1] for r in recent])
-        t -= t.mean()
-        v = np.tensordot(t, ends - ends.mean(axis=0), axes=1) / np.dot(t, t)
+        v = _slopes(np.array([r[0] for r in recent], np.float64), np.stack([r[1] for r in recent]))
         self._va, self._vb = v[:8], v[8:]
