@@ -44,22 +44,34 @@ def _stream(rng: np.random.Generator, n: int) -> np.ndarray:
     return make_events(t, x, y, rng.choice([-1, 1], n))
 
 
-def _reference_surface(events: np.ndarray, polarities: int) -> dict[tuple, int]:
-    """(x, y, polarity index) -> start of the pixel's latest burst, event by event."""
-    start: dict[tuple, int] = {}
+def _reference_bursts(events: np.ndarray, polarities: int, mark: int = 0) -> set[tuple]:
+    """(x, y, polarity index, start) of each pixel's latest burst and of its first burst from
+    ``mark`` on, event by event: a burst ends after a gap of ``GAP_US`` or at an event of the
+    other polarity."""
+    latest: dict[tuple, int] = {}
+    first: dict[tuple, int] = {}
     last: dict[tuple, int] = {}
     for t, x, y, p in zip(events["t"], events["x"], events["y"], events["p"], strict=True):
         key = (int(x), int(y), 0 if p > 0 else 1)
+        last.pop((key[0], key[1], 1 - key[2]), None)
         if key[2] >= polarities:
             continue
         if key not in last or t - last[key] > GAP_US:
-            start[key] = int(t)
+            latest[key] = int(t)
+            if t >= mark and key not in first:
+                first[key] = int(t)
         last[key] = int(t)
-    return start
+    return {(*key, t) for kept in (latest, first) for key, t in kept.items()}
 
 
-def _on_grid(surface: dict, stride: int) -> dict:
-    return {key: t for key, t in surface.items() if key[0] % stride == key[1] % stride == 0}
+def _on_grid(bursts: set[tuple], stride: int) -> set[tuple]:
+    return {b for b in bursts if b[0] % stride == b[1] % stride == 0}
+
+
+def _as_tuples(bursts) -> list[tuple]:
+    """The bursts read out, (x, y, polarity index, start) each, in their order."""
+    fields = (bursts["x"], bursts["y"], bursts["p"], bursts["t"])
+    return [(int(x), int(y), 0 if p > 0 else 1, int(t)) for x, y, p, t in zip(*fields, strict=True)]
 
 
 @settings(max_examples=25, deadline=None)
@@ -69,22 +81,23 @@ def _on_grid(surface: dict, stride: int) -> dict:
     st.booleans(),
     st.integers(1, 3),
     st.sampled_from([1, 2, 4]),
+    st.integers(0, 2000),
 )
-def test_triage_keeps_each_pixels_latest_burst_start(seed, n, both, pieces, stride):
-    """Of the pixels on every ``stride``-th row and column (the others are not kept)."""
+def test_triage_keeps_each_pixels_latest_and_first_marked_burst_start(
+    seed, n, both, pieces, stride, mark
+):
+    """Of the pixels on every ``stride``-th row and column (the others are not kept); a burst
+    that is both the latest and the first from the mark on is read out once."""
     rng = np.random.default_rng(seed)
     events = _stream(rng, n)
     triage = EventTriage(DISTORTED.undistort_table, GAP_US, both)
     triage.reset(0, stride)
+    triage.mark_us = mark
     for part in np.array_split(events, pieces):  # chunking must not matter
         triage(part)
-    expected = _on_grid(_reference_surface(events, 2 if both else 1), stride)
-    bursts = triage.bursts(-(1 << 20), 1 << 20, (0, WIDTH, 0, HEIGHT))
-    got = {
-        (int(x), int(y), 0 if p > 0 else 1): int(t)
-        for t, x, y, p in zip(bursts["t"], bursts["x"], bursts["y"], bursts["p"], strict=True)
-    }
-    assert got == expected
+    expected = _on_grid(_reference_bursts(events, 2 if both else 1, mark), stride)
+    got = _as_tuples(triage.bursts(-(1 << 20), 1 << 20, (0, WIDTH, 0, HEIGHT)))
+    assert len(got) == len(set(got)) and set(got) == expected
 
 
 @pytest.mark.parametrize("stride", [1, 2, 4])
@@ -117,19 +130,18 @@ def test_bursts_are_those_that_began_in_the_window_inside_the_box(seed, t0, span
     events = _stream(rng, 300)
     triage = EventTriage(DISTORTED.undistort_table, GAP_US, True)
     triage.reset(0, stride)
+    triage.mark_us = t0
     triage(events)
     box = (1, 4, 1, 4)  # odd edges: the stride's grid starts inside the box
     expected = {
-        key: t
-        for key, t in _on_grid(_reference_surface(events, 2), stride).items()
-        if t0 <= t < t0 + span and box[0] <= key[0] < box[1] and box[2] <= key[1] < box[3]
+        (x, y, d, t)
+        for x, y, d, t in _on_grid(_reference_bursts(events, 2, t0), stride)
+        if t0 <= t < t0 + span and box[0] <= x < box[1] and box[2] <= y < box[3]
     }
     bursts = triage.bursts(t0, t0 + span, box)
-    assert len(bursts) == len(expected)
-    for t, x, y, p, xu, yu in zip(
-        *(bursts[f] for f in ("t", "x", "y", "p", "xu", "yu")), strict=True
-    ):
-        assert expected[(int(x), int(y), 0 if p > 0 else 1)] == t
+    got = _as_tuples(bursts)
+    assert len(got) == len(set(got)) and set(got) == expected
+    for x, y, xu, yu in zip(*(bursts[f] for f in ("x", "y", "xu", "yu")), strict=True):
         assert (xu, yu) == tuple(DISTORTED.undistort_table[y, x].astype(np.float32))
 
 

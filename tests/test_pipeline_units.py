@@ -148,6 +148,7 @@ def _triage(both: bool = False) -> EventTriage:
 
 def test_triage_keeps_when_each_pixel_burst_began():
     triage = _triage()
+    triage.mark_us = 50  # a frame's window begins
     # pixel (3, 4): a burst at 100..300, another at 5000; pixel (5, 6): ON at 400, OFF at 5100
     triage(
         make_events(
@@ -157,15 +158,27 @@ def test_triage_keeps_when_each_pixel_burst_began():
             [1, 1, 1, 1, 1, -1],
         )
     )
+    # (3, 4) began again at 5000, but its first burst from the mark on is kept too; (5, 6)
+    # went off at 5100, which an ON-only surface does not keep
     bursts = triage.bursts(0, 1000, (0, 32, 0, 24))
-    # (3, 4) began again at 5000; (5, 6) went off at 5100, which an ON-only surface ignores
-    assert bursts["t"].tolist() == [400] and bursts["x"].tolist() == [5]
+    assert bursts["t"].tolist() == [100, 400] and bursts["x"].tolist() == [3, 5]
     later = triage.bursts(1000, 6000, (0, 32, 0, 24))
     assert later["t"].tolist() == [5000] and later["p"].tolist() == [1]
     assert len(triage.bursts(0, 6000, (0, 3, 0, 24))) == 0  # outside the box
     both = _triage(both=True)
     both(make_events([100, 5100], [5, 5], [6, 6], [1, -1]))
     assert sorted(both.bursts(0, 6000, (0, 32, 0, 24))["p"].tolist()) == [-1, 1]
+
+
+def test_an_event_of_the_other_polarity_ends_a_burst():
+    """An edge's image that darkens a pixel and relights it within the gap (a moving camera)
+    starts a new burst: the switch after it is seen at its own time."""
+    triage = _triage()
+    triage(make_events([100, 200, 600, 700], [3] * 4, [4] * 4, [1, -1, 1, 1]))
+    assert triage.bursts(0, 1000, (0, 32, 0, 24))["t"].tolist() == [100, 600]
+    triage.reset(epoch_us=0)
+    triage(make_events([100, 200, 600], [3] * 3, [4] * 3, [1, 1, 1]))  # no OFF: one burst
+    assert triage.bursts(0, 1000, (0, 32, 0, 24))["t"].tolist() == [100]
 
 
 def test_triage_passes_only_events_near_the_tracked_edges():

@@ -267,6 +267,7 @@ class Receiver:
                 out += self._decode(end)
                 continue
             cut = max(1, first_at(events["t"], min(end, first + _SEGMENT_US)))
+            self._triage.mark_us = self._reader.window(self._next_frame)[0]
             with self._cpu("triage"):
                 if track:
                     self._select_near_edges()
@@ -343,7 +344,7 @@ class Receiver:
             self._next_frame += 1
             with self._cpu("decode"):
                 t0, t1 = reader.window(m)
-                box = reader.box(self.pose_at((t0 + t1) / 2))
+                box = reader.box(*(self.pose_at(t) for t in (t0, (t0 + t1) / 2, t1)))
                 bursts = self._triage.bursts(t0, t1, box)
                 read = reader.read(m, bursts, self.pose_at)
             self.stats.frames_read += 1

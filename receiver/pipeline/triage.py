@@ -1,14 +1,21 @@
 """One compiled pass over every event while the marker is tracked.
 
 Neither consumer needs every event. The decoder reads each pixel once per frame (the union of
-its events, as the paper ORs its samples), so it needs only *when each pixel's latest burst of
-each polarity began*: a per-pixel time surface. The tracker needs only the events near the
-ring's projected edges. Both come out of one pass over the raw chunk, which costs a few memory
-accesses per event; everything after it works per pixel or on the few selected events.
+its events, as the paper ORs its samples), so it needs only *when each pixel's bursts of each
+polarity began*: a per-pixel time surface of the latest burst's start and of the first one's
+since the current frame's window opened (``EventTriage.mark_us``). The tracker needs only the
+events near the ring's projected edges. Both come out of one pass over the raw chunk, which
+costs a few memory accesses per event; everything after it works per pixel or on the few
+selected events.
 
-A burst is a run of same-polarity events with no gap longer than ``gap_us``: a cell switching
-fires its pixels several times within the display's response, and the same pixel cannot switch
-the same way again for two refreshes (or a data frame and a blank one).
+A burst is a run of same-polarity events with no gap longer than ``gap_us`` and no event of the
+other polarity: a cell switching fires its pixels several times within the display's response,
+and the same pixel cannot switch the same way again for two refreshes (or a data frame and a
+blank one), unless motion sweeps an edge's image over it. At 6 px/ms the scan-out spreads a
+frame's bursts over ~10 ms, in which a white cell's pixel is often relit once or twice by its
+neighbours' images: the first burst is the display's switch, the latest one is not (the frames
+read bit-exact through the true pose of a 6 px/ms clip went from 36 to 55 of 59 with the first
+burst kept and bursts ended by the other polarity).
 
 Cells much larger than the decoder needs (a 1280x720 camera close to an N = 16 marker sees 22 px
 per cell and ~140 M events a second) are read from a coarser surface: only the pixels on every
@@ -41,22 +48,30 @@ _BLOCK = 1024
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _burst(surface, e, epoch, gap_us, shift):
-    """Note event ``e`` in its pixel's burst times (ON only when the surface has one polarity)."""
+def _burst(surface, e, epoch, gap_us, shift, mark):
+    """Note event ``e`` in its pixel's burst times (ON only when the surface has one polarity):
+    the latest burst's start and last event, and the first burst's start from ``mark`` on. An
+    event of the other polarity ends a burst: a moving edge darkens and relights a pixel well
+    within ``gap_us``."""
     d = 0 if e.p > 0 else 1
+    sy, sx = e.y >> shift, e.x >> shift
+    if 1 - d < surface.shape[2]:
+        surface[sy, sx, 1 - d, 1] = _NEVER
     if d < surface.shape[2]:
         ti = np.int32(e.t - epoch)
-        sy, sx = e.y >> shift, e.x >> shift
         if ti - surface[sy, sx, d, 1] > gap_us:
             surface[sy, sx, d, 0] = ti
+            if surface[sy, sx, d, 2] < mark:
+                surface[sy, sx, d, 2] = ti
         surface[sy, sx, d, 1] = ti
 
 
 @numba.njit(cache=True, nogil=True)
-def _triage(events, surface, epoch, gap_us, tiles, shift, every):
-    """Update ``surface[y >> shift, x >> shift, polarity] = (burst start, last event)`` from the
-    pixels on the stride's grid; return the indices of the events on the marked ``tiles``, of
-    every ``every``-th event (the first, then every ``every``-th).
+def _triage(events, surface, epoch, gap_us, tiles, shift, every, mark):
+    """Update ``surface[y >> shift, x >> shift, polarity] = (latest burst's start, its last
+    event, first burst's start from ``mark`` on)`` from the pixels on the stride's grid; return
+    the indices of the events on the marked ``tiles``, of every ``every``-th event (the first,
+    then every ``every``-th).
 
     ``events`` is the structured chunk itself: numba reads each record's fields in one go, which
     runs a third faster than four strided field views. With a stride, whether an event lies on
@@ -70,7 +85,7 @@ def _triage(events, surface, epoch, gap_us, tiles, shift, every):
         countdown = 1
         for i in range(n):
             e = events[i]
-            _burst(surface, e, epoch, gap_us, shift)
+            _burst(surface, e, epoch, gap_us, shift, mark)
             countdown -= 1
             if countdown == 0:
                 countdown = every
@@ -86,7 +101,7 @@ def _triage(events, surface, epoch, gap_us, tiles, shift, every):
             on_grid[g] = i
             g += ((e.x | e.y) & off_grid) == 0
         for j in range(g):
-            _burst(surface, events[on_grid[j]], epoch, gap_us, shift)
+            _burst(surface, events[on_grid[j]], epoch, gap_us, shift, mark)
         for i in range(-(-b0 // every) * every, b1, every):
             e = events[i]
             selected[k] = i
@@ -103,7 +118,7 @@ def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, shift):
     stride = 1 << shift
     gy0, gy1 = (y0 + stride - 1) >> shift, (y1 + stride - 1) >> shift
     gx0, gx1 = (x0 + stride - 1) >> shift, (x1 + stride - 1) >> shift
-    size = max(gy1 - gy0, 0) * max(gx1 - gx0, 0) * polarities
+    size = max(gy1 - gy0, 0) * max(gx1 - gx0, 0) * polarities * 2
     t = np.empty(size, np.int64)
     x, y = np.empty(size, np.uint16), np.empty(size, np.uint16)
     xu, yu = np.empty(size, np.float32), np.empty(size, np.float32)
@@ -114,12 +129,13 @@ def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, shift):
         for gx in range(gx0, gx1):
             xx = gx << shift
             for d in range(polarities):
-                ts = surface[gy, gx, d, 0]
-                if t0 <= ts < t1:
-                    t[k], x[k], y[k] = ts + epoch, xx, yy
-                    xu[k], yu[k] = table[yy, xx, 0], table[yy, xx, 1]
-                    p[k] = 1 - 2 * d
-                    k += 1
+                for j in (2, 0):  # the first burst from the mark on, then the latest
+                    ts = surface[gy, gx, d, j]
+                    if t0 <= ts < t1 and (j == 2 or ts != surface[gy, gx, d, 2]):
+                        t[k], x[k], y[k] = ts + epoch, xx, yy
+                        xu[k], yu[k] = table[yy, xx, 0], table[yy, xx, 1]
+                        p[k] = 1 - 2 * d
+                        k += 1
     return t[:k], x[:k], y[:k], p[:k], xu[:k], yu[:k]
 
 
@@ -165,7 +181,7 @@ class EventTriage:
         self._table = np.ascontiguousarray(undistort_table, np.float32)
         height, width = self._table.shape[:2]
         self._polarities = 2 if both_polarities else 1
-        self.surface = np.full((height, width, self._polarities, 2), _NEVER, np.int32)
+        self.surface = np.full((height, width, self._polarities, 3), _NEVER, np.int32)
         self.stride = 1
         """The surface holds the pixels on every ``stride``-th row and column (``reset``)."""
         self._shift = 0
@@ -173,6 +189,11 @@ class EventTriage:
         self._near_share = 1.0
         """Share of the events that lay near the edges in the latest call."""
         self.epoch_us = epoch_us
+        self.mark_us = epoch_us
+        """Each pixel's first burst from this time on is kept as well as its latest: set it to
+        the start of a frame's window before its events arrive, and the frame sees the bursts
+        of the display's switch even where motion has started newer ones since (a pixel's
+        latest burst alone keeps only the last time an edge's image relit it)."""
         self.gap_us = int(gap_us)
         self._tiles = np.zeros((-(-height // TILE), -(-width // TILE)), np.bool_)
         self._edges: np.ndarray | None = None
@@ -189,12 +210,12 @@ class EventTriage:
         if stride < 1 or stride & (stride - 1):
             raise ValueError(f"triage stride must be a power of two, got {stride}")
         height, width = self._table.shape[:2]
-        shape = (-(-height // stride), -(-width // stride), self._polarities, 2)
+        shape = (-(-height // stride), -(-width // stride), self._polarities, 3)
         if self.surface.shape != shape:
             self.surface = np.empty(shape, np.int32)
         self.surface.fill(_NEVER)
         self.stride, self._shift = stride, stride.bit_length() - 1
-        self.epoch_us = epoch_us
+        self.epoch_us = self.mark_us = epoch_us
         self._near_share = 1.0
         self._tiles[:] = False
         self._edges = None
@@ -215,7 +236,8 @@ class EventTriage:
         # edges last time: at 140 M events a second the tracker keeps one near event in ten.
         every = max(-int(-len(events) * self._near_share // most), 1)
         surface, epoch, tiles = self.surface, self.epoch_us, self._tiles
-        near = _triage(events, surface, epoch, self.gap_us, tiles, self._shift, every)
+        mark = min(max(self.mark_us - epoch, _NEVER), 1 << 30)
+        near = _triage(events, surface, epoch, self.gap_us, tiles, self._shift, every, mark)
         self._near_share = len(near) * every / len(events)
         near = near[:: -(-len(near) // most)] if len(near) > most else near
         return to_columns(events, self._table, near)
@@ -231,8 +253,9 @@ class EventTriage:
         _mark_tiles(self._tiles, self._table, a, b, reach, self._warp_tiles)
 
     def bursts(self, t0: int, t1: int, box: tuple[int, int, int, int]) -> EventColumns:
-        """The pixel bursts that began in ``[t0, t1)`` inside ``box`` = (x0, x1, y0, y1): one
-        entry per pixel on the stride's grid and polarity, with the burst's start as its time."""
+        """The pixel bursts that began in ``[t0, t1)`` inside ``box`` = (x0, x1, y0, y1): up to
+        two entries (the first from ``mark_us`` on and the latest) per pixel on the stride's grid
+        and polarity, with the burst's start as its time."""
         e = self.epoch_us
         lo, hi = max(t0 - e, _NEVER + 1), min(t1 - e, (1 << 31) - 1)
         return EventColumns(
