@@ -93,20 +93,22 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often
   here than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its
   throughput above ours at N = 16; the paper found the opposite. At the `standard` scale our
-  receiver reads 97-98% of the data frames bit-exact up to 1 px/ms, 92-97% at 2-3 px/ms,
-  78-80% at 4 px/ms and 48-67% at 6 px/ms, where AprilTag and ArUco (without blank frames)
-  still decode 96-98% of their codes. The table's last column says why. At every flow the
-  receiver tracks 94-98% of the clip with at most one loss (at 6 px/ms, where the clip's flow
-  peaks at 9-12 px/ms, 1% of it on a pose more than 5 cm off): the missed frames are reads with
-  a few wrong bits, which `robust`'s FEC absorbs (2.1 kbit/s even at 6 px/ms) and which stall
-  the `paper` profile (no frame header: one lost frame stops it until the transmitter loops
-  round). The pose is not what costs them: replaying the 6 px/ms clip with the true pose
-  (delayed by the sensor's 0.2 ms latency) handed to the decoder reads 36 of 59 frames
-  bit-exact, against 35 with the tracked pose; the rest read 1-15 bits wrong, mostly cells
-  that the moving image sweeps within the read gate. (Before commit b8d5afa the tracker's edges
+  receiver reads 97-98% of the data frames bit-exact up to 1 px/ms, 93-98% at 2-3 px/ms,
+  92-97% at 4 px/ms, and at 6 px/ms 80% with `robust` but 28% with `paper`, where AprilTag
+  and ArUco (without blank frames) still decode 96-98% of their codes. The table's last column
+  says why. At every flow the receiver tracks 93-98% of the clip with at most one loss; the
+  missed frames are reads with a few wrong bits, which `robust`'s FEC absorbs (2.4 kbit/s at
+  6 px/ms) and which stall the `paper` profile (no frame header: one lost frame stops it until
+  the transmitter loops round). The `paper` clip at 6 px/ms (its flow peaks at 9-12 px/ms)
+  lost its lock once, as before, but this time locked again on a wrong pose and tracked it for
+  over a second (55% of the clip more than 5 cm off); replayed through the receiver from the
+  same events in the same 10 ms chunks it locks at 0.10 s, holds without a loss and reads 50 of
+  59 frames bit-exact. Until commit f958734 a frame under fast motion was read from each
+  pixel's latest burst, which motion had often restarted after the display's switch: the same
+  replay read 33 of 59 (36 through the true pose). Before commit b8d5afa the tracker's edges
   stood still between pose updates, so the pose trailed the events by about 0.2 ms and at the
   flow peaks slid off the ring: 23-27% read at 6 px/ms, 73-79% of the clip tracked, five or six
-  losses. Before ef463e9 detection searched image flows only up to 2.5 px/ms: 13-15%.)
+  losses. Before ef463e9 detection searched image flows only up to 2.5 px/ms: 13-15%.
 - The simulator has no motion-capture noise, calibration error or clock offset, so our ATE is
   below the paper's; it shows the tracker, not what a real set-up would measure.
 """
