@@ -101,9 +101,10 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   6 px/ms) and which stall the `paper` profile (no frame header: one lost frame stops it until
   the transmitter loops round). The `paper` clip at 6 px/ms (its flow peaks at 9-12 px/ms)
   lost its lock once, as before, but this time locked again on a wrong pose and tracked it for
-  over a second (55% of the clip more than 5 cm off); replayed through the receiver from the
-  same events in the same 10 ms chunks it locks at 0.10 s, holds without a loss and reads 50 of
-  59 frames bit-exact. Until commit f958734 a frame under fast motion was read from each
+  over a second (55% of the clip more than 5 cm off), again when rerun alone. The clip's events
+  saved in an earlier session (the first 30 ms checked identical) and replayed through the
+  receiver in the same 10 ms chunks lock at 0.10 s, hold without a loss and read 50 of 59
+  frames bit-exact; why the live run differs is not found yet. Until commit f958734 a frame under fast motion was read from each
   pixel's latest burst, which motion had often restarted after the display's switch: the same
   replay read 33 of 59 (36 through the true pose). Before commit b8d5afa the tracker's edges
   stood still between pose updates, so the pose trailed the events by about 0.2 ms and at the
