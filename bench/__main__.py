@@ -93,23 +93,24 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often
   here than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its
   throughput above ours at N = 16; the paper found the opposite. At the `standard` scale our
-  receiver reads 97-98% of the data frames bit-exact up to 1 px/ms, 93-98% at 2-3 px/ms,
-  92-97% at 4 px/ms, and at 6 px/ms 80% with `robust` but 28% with `paper`, where AprilTag
-  and ArUco (without blank frames) still decode 96-98% of their codes. The table's last column
-  says why. At every flow the receiver tracks 93-98% of the clip with at most one loss; the
-  missed frames are reads with a few wrong bits, which `robust`'s FEC absorbs (2.4 kbit/s at
-  6 px/ms) and which stall the `paper` profile (no frame header: one lost frame stops it until
-  the transmitter loops round). The `paper` clip at 6 px/ms (its flow peaks at 9-12 px/ms)
-  lost its lock once, as before, but this time locked again on a wrong pose and tracked it for
-  over a second (55% of the clip more than 5 cm off), again when rerun alone. The clip's events
-  saved in an earlier session (the first 30 ms checked identical) and replayed through the
-  receiver in the same 10 ms chunks lock at 0.10 s, hold without a loss and read 50 of 59
-  frames bit-exact; why the live run differs is not found yet. Until commit f958734 a frame under fast motion was read from each
-  pixel's latest burst, which motion had often restarted after the display's switch: the same
-  replay read 33 of 59 (36 through the true pose). Before commit b8d5afa the tracker's edges
-  stood still between pose updates, so the pose trailed the events by about 0.2 ms and at the
-  flow peaks slid off the ring: 23-27% read at 6 px/ms, 73-79% of the clip tracked, five or six
-  losses. Before ef463e9 detection searched image flows only up to 2.5 px/ms: 13-15%.
+  receiver reads 97-98% of the data frames bit-exact up to 1 px/ms, 93-98% at 2-3 px/ms, 92-97%
+  at 4 px/ms, and at 6 px/ms 80% with `robust` but 28% with `paper`, where AprilTag and ArUco
+  (without blank frames) still decode 96-98% of their codes. The table's last column says why.
+  At every flow the receiver tracks 93-98% of the clip with at most one loss; the missed frames
+  are reads with a few wrong bits, which `robust`'s FEC absorbs (2.4 kbit/s at 6 px/ms) and
+  which stall the `paper` profile (no frame header: one lost frame stops it until the
+  transmitter loops round). The `paper` clip at 6 px/ms (its flow peaks at 9-12 px/ms) lost its
+  lock once, as before, but this time locked again on a wrong pose and tracked it for over a
+  second (55% of the clip more than 5 cm off), again when rerun alone. The clip's events saved
+  in an earlier session (the first 30 ms checked identical) and replayed through the receiver in
+  the same 10 ms chunks lock at 0.10 s, hold without a loss and read 50 of 59 frames bit-exact;
+  why the live run differs is not found yet. Until commit f958734 a frame under fast motion was
+  read from each pixel's latest burst, which motion had often restarted after the display's
+  switch: the same replay read 33 of 59 (36 through the true pose). Before commit b8d5afa the
+  tracker's edges stood still between pose updates, so the pose trailed the events by about 0.2
+  ms and at the flow peaks slid off the ring: 23-27% read at 6 px/ms, 73-79% of the clip
+  tracked, five or six losses. Before ef463e9 detection searched image flows only up to 2.5
+  px/ms: 13-15%.
 - The simulator has no motion-capture noise, calibration error or clock offset, so our ATE is
   below the paper's; it shows the tracker, not what a real set-up would measure.
 """
