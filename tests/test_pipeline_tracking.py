@@ -87,6 +87,24 @@ def test_noise_far_from_the_edges_leaves_the_pose_alone():
     assert np.allclose(tracker.T_cam_world, truth)
 
 
+def test_a_silent_outer_edge_swept_by_the_motion_contradicts_the_pose():
+    # The camera slides sideways at ~1.5 px/ms: the left and right edges sweep, top and bottom run
+    # along the motion. A pose whose outer right edge then fires nothing is wrong (it lies on
+    # the wall around the screen); a silent edge the motion runs along is no evidence.
+    def run(dropped: tuple[int, ...]) -> bool:
+        tracker = EdgeTracker(CONFIG, invert(_view()))
+        for k in range(40):
+            truth = invert(_view(shift=(0.003 * k, 0.0)))
+            x, y, t = _edge_events(truth, 1000 * k, seed=k)
+            keep = ~np.isin(_nearest_edge(x, y, *tracker._project_edges(truth))[1], dropped)
+            tracker.push(x[keep], y[keep], t[keep])
+        return tracker.contradicted
+
+    assert run((1,)), "the outer right edge sweeps with the motion but fired nothing"
+    assert not run(())
+    assert not run((0,)), "the motion runs along the top edge: its silence is no evidence"
+
+
 def test_stale_cluster_events_age_out():
     truth = invert(_view(tilt=5))
     late_us = CONFIG.tracker.max_age_us + 20_000

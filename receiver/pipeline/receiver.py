@@ -8,7 +8,8 @@ still count towards the message.
 Detection attempts are spaced in event time (``DetectorParams.retry_us``), so a recording decodes
 the same on any machine; only a real-time source also spaces them by their CPU cost. A detection
 becomes a lock only once the frames still buffered verify it (``Receiver._unverified``). While
-tracking, a lock is dropped when the tracker leaves the ring's edges, the marker leaves the view,
+tracking, a lock is dropped when the tracker leaves the ring's edges or an outer edge stays silent
+while the motion sweeps it (``EdgeTracker.contradicted``), the marker leaves the view,
 the inner locator goes unseen for several frames, or its 'L' reads upright barely better than
 turned (``Receiver._misturned``): a pose a quarter turn off passes every other check. A lock
 from a detection under motion is on probation until one of its frames passes its check
@@ -327,6 +328,8 @@ class Receiver:
         return None
 
     def _off_edges(self) -> str | None:
+        if self._tracker.contradicted:
+            return "an outer edge of the ring shows no events while the marker sweeps it"
         history = self._tracker.fit_history
         if len(history) < history.maxlen:
             return None

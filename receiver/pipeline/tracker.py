@@ -36,6 +36,12 @@ _MIN_FILL = 0.25
 fills a cluster)."""
 _MIN_EDGES = 4
 """Edges with enough fresh events for a pose solve: four lines fix a plane's pose."""
+_SWEEP_PX_PER_US = 1e-3
+"""An outer edge of the ring whose image crosses itself this fast (1 px/ms) fires events along
+its whole length within a millisecond, as its inner edge does (``EdgeTracker.silent_edges``)."""
+_SILENT_UPDATES = 10
+"""Consecutive pose updates that must find a silent swept outer edge before the pose counts as
+contradicted (``EdgeTracker.contradicted``)."""
 _CAPTURE_GATES = (2.0, 1.0, 0.0)
 """Gates of the capture passes in ring widths (0: the tracking gates). Each event counts for its
 nearest edge only, so the ring's two sides stay apart, and never from deeper than ``_LOCATOR_GAP``
@@ -290,15 +296,15 @@ def _age_out(since_us, sx, sy, st, sd, sum_d, n_valid):
 
 @numba.njit(cache=True, nogil=True)
 def _supported_edges(st, since_us, cap, min_fill):
-    """How many edges hold at least ``max(3, min_fill * cap)`` events not older than
+    """Which edges hold at least ``max(3, min_fill * cap)`` events not older than
     ``since_us``."""
-    count = 0
+    supported = np.zeros(st.shape[0], np.bool_)
     for e in range(st.shape[0]):
         fresh = 0
         for s in range(st.shape[1]):
             fresh += st[e, s] >= since_us
-        count += fresh >= max(3, min_fill * cap[e])
-    return count
+        supported[e] = fresh >= max(3, min_fill * cap[e])
+    return supported
 
 
 @numba.njit(cache=True, nogil=True)
@@ -383,12 +389,41 @@ class EdgeTracker:
         self._fit = np.zeros(3, np.int64)
         self.fit_history: deque[float] = deque(maxlen=config.tracker.fit_judgements)
         """The latest ``fit_judgements`` fit ratios, oldest first."""
+        self.silent_history: deque[int] = deque(maxlen=_SILENT_UPDATES)
+        """``silent_edges`` at the latest pose updates, oldest first."""
         self._rebin(T_cam_world, now_us)
 
     @property
     def fit_ratio(self) -> float | None:
         """Share of the latest band events that lie on an edge; None until enough were seen."""
         return self.fit_history[-1] if self.fit_history else None
+
+    @property
+    def contradicted(self) -> bool:
+        """Whether each of the last ``_SILENT_UPDATES`` pose updates found a silent swept outer
+        edge (``silent_edges``)."""
+        history = self.silent_history
+        return len(history) == history.maxlen and all(history)
+
+    def silent_edges(self, supported: np.ndarray) -> int:
+        """Outer edges that hold no fresh events (``supported``: per edge) although the image
+        moves them across themselves faster than ``_SWEEP_PX_PER_US`` inside the view and the
+        inner edge beside them holds fresh ones. A correct pose has none: the white ring's two
+        edges sweep over the same motion. A pose that fits the ring's two near sides and, on
+        the other two, takes the screen's border for the ring's inner edge (the same contrast:
+        bright outside, dark inside) has two: its outer edges lie on the wall around the
+        screen, where nothing fires (a 6 px/ms clip tracked such a pose 8 cm off for a second,
+        75-97% of its band's events on its edges)."""
+        a, b = self._a[:4], self._b[:4]
+        d = b - a
+        normal = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
+        speed = np.abs(np.sum(0.5 * (self._va[:4] + self._vb[:4]) * normal, axis=1))
+        cam = self.config.camera
+        inside = np.all((a >= 0) & (b >= 0), axis=1)
+        inside &= np.all((a[:, :1] < cam.width) & (b[:, :1] < cam.width), axis=1)
+        inside &= np.all((a[:, 1:] < cam.height) & (b[:, 1:] < cam.height), axis=1)
+        silent = (speed > _SWEEP_PX_PER_US) & inside & ~supported[:4] & supported[4:]
+        return int(np.count_nonzero(silent))
 
     # --- geometry of the current pose ----------------------------------------------------------
     def _project_edges(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -527,7 +562,9 @@ class EdgeTracker:
         self.last_update_us = now_us
         self._fit[2] = 0
         since = max(0, now_us - self.config.tracker.max_age_us)
-        if _supported_edges(st, since, self._cap, _MIN_FILL) < _MIN_EDGES:
+        supported = _supported_edges(st, since, self._cap, _MIN_FILL)
+        self.silent_history.append(self.silent_edges(supported))
+        if np.count_nonzero(supported) < _MIN_EDGES:
             self._age_out(now_us)
             return None
         _carry(sx, sy, st, self._cap, self._va, self._vb, self._ref_us, now_us)
