@@ -418,10 +418,8 @@ class EdgeTracker:
         d = b - a
         normal = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
         speed = np.abs(np.sum(0.5 * (self._va[:4] + self._vb[:4]) * normal, axis=1))
-        cam = self.config.camera
-        inside = np.all((a >= 0) & (b >= 0), axis=1)
-        inside &= np.all((a[:, :1] < cam.width) & (b[:, :1] < cam.width), axis=1)
-        inside &= np.all((a[:, 1:] < cam.height) & (b[:, 1:] < cam.height), axis=1)
+        ends, cam = np.stack([a, b], 1), self.config.camera
+        inside = np.all((ends >= 0) & (ends < (cam.width, cam.height)), axis=(1, 2))
         silent = (speed > _SWEEP_PX_PER_US) & inside & ~supported[:4] & supported[4:]
         return int(np.count_nonzero(silent))
 
