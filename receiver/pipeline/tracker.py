@@ -43,8 +43,8 @@ _SILENT_UPDATES = 30
 """Consecutive pose updates (~30 ms under motion) that must find a silent swept outer edge before
 the pose counts as contradicted (``EdgeTracker.contradicted``). A pose that slides off at a flow
 peak often comes back: at 10, the comparison's 6 px/ms `robust` clip lost such a pose and took
-190 ms to lock again (41 of 60 frames read bit-exact, 48 at 30); the wrong lock of its `paper`
-clip fails its verification at either."""
+190 ms to lock again (68% of its data frames read bit-exact); replayed at 30 it keeps the pose
+(48 of 60), and the wrong lock of its `paper` clip still fails its verification."""
 _CAPTURE_GATES = (2.0, 1.0, 0.0)
 """Gates of the capture passes in ring widths (0: the tracking gates). Each event counts for its
 nearest edge only, so the ring's two sides stay apart, and never from deeper than ``_LOCATOR_GAP``
