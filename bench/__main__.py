@@ -107,17 +107,15 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   outer edges then lay on the wall and fired nothing. The tracker now drops a pose whose outer
   edge stays silent for 30 updates while the motion sweeps it; that lock fails its
   verification and the next one is right. (Dropped after 10 updates, `robust`'s slide became a
-  loss and a 190 ms relock: 68% read.) Replays of saved events cut into 10 ms chunks differ
-  from the simulator's own chunks by the odd event at a chunk's edge, and the receiver, which
-  tries detection at each chunk's end, then diverges: each clip is one
-  chaotic run. Until commit f958734 a frame under fast motion was read from each pixel's
-  latest burst, which motion had often restarted after the display's switch: a 10 ms replay of
-  the `paper` clip read 33 of 59 frames (50 after; 36 and 55 through the true pose). Before
-  commit b8d5afa the
-  tracker's edges stood still between pose updates, so the pose trailed the events by about 0.2
-  ms and at the flow peaks slid off the ring: 23-27% read at 6 px/ms, 73-79% of the clip
-  tracked, five or six losses. Before ef463e9 detection searched image flows only up to 2.5
-  px/ms: 13-15%.
+  loss and a 190 ms relock: 68% read.) Replays of saved events cut into 10 ms chunks differ from
+  the simulator's own chunks by the odd event at a chunk's edge, and the receiver, which tries
+  detection at each chunk's end, then diverges: each clip is one chaotic run. Until commit
+  f958734 a frame under fast motion was read from each pixel's latest burst, which motion had
+  often restarted after the display's switch: a 10 ms replay of the `paper` clip read 33 of 59
+  frames (50 after; 36 and 55 through the true pose). Before commit b8d5afa the tracker's edges
+  stood still between pose updates, so the pose trailed the events by about 0.2 ms and at the
+  flow peaks slid off the ring: 23-27% read at 6 px/ms, 73-79% of the clip tracked, five or six
+  losses. Before ef463e9 detection searched image flows only up to 2.5 px/ms: 13-15%.
 - The simulator has no motion-capture noise, calibration error or clock offset, so our ATE is
   below the paper's; it shows the tracker, not what a real set-up would measure.
 """

@@ -120,6 +120,13 @@ def _nearest_edge(xu, yu, a, b, reach=np.inf):
     return dist, edge
 
 
+def _unit_normals(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n, 2) unit normals of the segments ``a[i] -> b[i]``, in no particular orientation."""
+    along = b - a
+    normal = np.stack([along[:, 1], -along[:, 0]], axis=1)
+    return normal / np.linalg.norm(normal, axis=1, keepdims=True)
+
+
 def edge_polarities(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarray:
     """(8,) polarity (+1 ON, -1 OFF, 0 unknown) of the events that image ``flow`` fires on the
     ring's projected edges ``a[i] -> b[i]`` (the outer ones, then the inner ones).
@@ -127,9 +134,7 @@ def edge_polarities(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarra
     An edge moving towards its dark side brightens its pixels. The white ring is the bright side
     of its outer edges and the dark gap inside it the dark side of its inner ones. Edges moving
     along themselves (under a quarter of the flow across them) are unknown."""
-    along = b - a
-    normal = np.stack([along[:, 1], -along[:, 0]], axis=1)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = _unit_normals(a, b)
     normal *= np.sign(np.sum(((a + b) / 2 - a.mean(axis=0)) * normal, axis=1))[:, None]
     across = normal @ flow  # outwards
     known = np.abs(across) >= 0.25 * np.linalg.norm(flow)
@@ -417,14 +422,15 @@ class EdgeTracker:
         bright outside, dark inside) has two: its outer edges lie on the wall around the
         screen, where nothing fires (a 6 px/ms clip tracked such a pose 8 cm off for a second,
         75-97% of its band's events on its edges)."""
+        silent = ~supported[:4] & supported[4:]
+        if not silent.any():  # a tracked pose's usual case: skip the geometry (every update)
+            return 0
         a, b = self._a[:4], self._b[:4]
-        d = b - a
-        normal = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
-        speed = np.abs(np.sum(0.5 * (self._va[:4] + self._vb[:4]) * normal, axis=1))
+        velocity = 0.5 * (self._va[:4] + self._vb[:4])
+        speed = np.abs(np.sum(velocity * _unit_normals(a, b), axis=1))
         ends, cam = np.stack([a, b], 1), self.config.camera
         inside = np.all((ends >= 0) & (ends < (cam.width, cam.height)), axis=(1, 2))
-        silent = (speed > _SWEEP_PX_PER_US) & inside & ~supported[:4] & supported[4:]
-        return int(np.count_nonzero(silent))
+        return int(np.count_nonzero(silent & (speed > _SWEEP_PX_PER_US) & inside))
 
     # --- geometry of the current pose ----------------------------------------------------------
     def _project_edges(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
