@@ -178,6 +178,7 @@ def run_case(case: Case) -> dict:
                 for o in outputs
                 if isinstance(o, FrameOutput) and o.accepted and o.read.t_us >= lock_us
             )
+    log.add(rx.finish())
     report = log.report()
     report["cpu_total_s"] = cpu
     report["tracking_s"], report["tracking_cpu_s"] = tracking_us / 1e6, tracking_cpu

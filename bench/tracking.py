@@ -68,6 +68,7 @@ def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
     for chunk in rec:
         log.add(rx.push(chunk))
+    log.add(rx.finish())
     row = {
         "flow": flow_px_per_ms,
         "seed": seed,

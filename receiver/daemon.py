@@ -231,6 +231,8 @@ class Daemon:
                 if stop is not None and stop.is_set():
                     break
                 self.process(chunk)
+            else:  # the source ended: its last events were held back for the next chunk
+                self.handle(self.pipeline.finish())
         finally:
             sys.setswitchinterval(switch_interval)
             self.output.flush_poses()

@@ -65,6 +65,9 @@ class ScriptedPipeline:
             out.append(MessageOutput(t1, ReceivedMessage("a.txt", data, digest, 5, "robust")))
         return out
 
+    def finish(self) -> list:
+        return []
+
 
 class ListSource:
     def __init__(self, chunks: list[np.ndarray], width: int = 64, height: int = 48) -> None:

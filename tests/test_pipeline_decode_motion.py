@@ -124,6 +124,7 @@ def _decode(flow_px_per_ms: float, duration_s: float, true_pose: bool = False, s
     log = DecodeLog(rx, FrameTruth(scene.encoder, scene.display.refresh_hz))
     for chunk in rec:
         log.add(rx.push(chunk))
+    log.add(rx.finish())
     return log
 
 

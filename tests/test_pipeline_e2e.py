@@ -45,6 +45,7 @@ def _run(
         if drop_us is not None:
             chunk = chunk[(chunk["t"] < drop_us[0]) | (chunk["t"] >= drop_us[1])]
         log.add(rx.push(chunk))
+    log.add(rx.finish())
     return log, rec
 
 

@@ -6,6 +6,7 @@ is the obvious (slow) way to compute the same thing."""
 from __future__ import annotations
 
 import copy
+import itertools
 
 import cv2
 import numpy as np
@@ -217,7 +218,7 @@ def test_the_trackers_events_are_thinned_evenly_to_their_budget(per_ms, stride):
     for triage in (thinned, whole):
         triage.reset(0, stride)
         triage._tiles[:] = True
-    near = thinned(events, per_ms)
+    near = thinned(events, per_ms=per_ms)
     every = whole(events)
     span_ms = (int(events["t"][-1]) - int(events["t"][0]) + 1) / 1000
     k = max(1, -(-n // int(per_ms * span_ms)))
@@ -225,6 +226,26 @@ def test_the_trackers_events_are_thinned_evenly_to_their_budget(per_ms, stride):
         assert np.array_equal(near[field], every[field][::k])
     assert len(near["t"]) <= per_ms * span_ms
     assert np.array_equal(thinned.surface, whole.surface)
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_a_stretch_split_across_chunks_triages_as_one(stride):
+    """The parts of a stretch of the stream (the end of one chunk, the start of the next) are
+    read in place and give what one call on their concatenation gives: the same thinned events
+    and surfaces, however the stream was cut into chunks."""
+    events = _stream(np.random.default_rng(6), 3000)
+    cuts = [0, 1, 1100, 1101, 1101, 2500, len(events)]
+    whole, split = (EventTriage(DISTORTED.undistort_table, GAP_US, True) for _ in range(2))
+    for triage in (whole, split):
+        triage.reset(0, stride)
+        triage._tiles[0, 0] = True  # pixels x < 4, y < 4: about two thirds of the events
+    for _ in range(2):  # the second call's lookups are thinned by the first one's share
+        one = whole(events, per_ms=300.0)
+        parts = split(*(events[i:j] for i, j in itertools.pairwise(cuts)), per_ms=300.0)
+        assert 0 < len(one) < 2000
+        for field in ("t", "x", "y", "p", "xu", "yu"):
+            assert np.array_equal(one[field], parts[field])
+    assert np.array_equal(whole.surface, split.surface)
 
 
 def test_the_tile_lookups_thin_to_the_budget_from_the_share_near_the_edges():
@@ -235,8 +256,8 @@ def test_the_tile_lookups_thin_to_the_budget_from_the_share_near_the_edges():
     triage._tiles[0, 0] = True  # pixels x < 4, y < 4: about two thirds of the events
     per_ms = 600.0
     span_ms = (int(events["t"][-1]) - int(events["t"][0]) + 1) / 1000
-    first = triage(events, per_ms)
-    second = triage(events, per_ms)
+    first = triage(events, per_ms=per_ms)
+    second = triage(events, per_ms=per_ms)
     assert len(first["t"]) <= per_ms * span_ms
     assert 0.7 * per_ms * span_ms <= len(second["t"]) <= per_ms * span_ms
     assert np.all(second["x"] < TILE) and np.all(second["y"] < TILE)

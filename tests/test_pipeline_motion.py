@@ -292,8 +292,8 @@ def slow_cpu(monkeypatch):
 
 def test_detection_retries_are_spaced_in_event_time_whatever_the_machine(slow_cpu):
     rx = Receiver(CONFIG)
-    _push_noise(rx, 30)  # 300 ms: attempts at 70 ms, then 17.5 ms after, at the next chunk
-    assert _attempts(rx) == 12  # 70, 90, 110, ..., 290 ms
+    _push_noise(rx, 30)  # 300 ms: attempts from 70 ms on, every 17.5 ms of event time
+    assert _attempts(rx) == 14  # 70, 87.5, 105, ..., 297.5 ms
     assert not rx.stats.lock_times_us
 
 
@@ -324,14 +324,13 @@ def _replay(
     poses: list[PoseEstimate] = []
     changes: list[StateChange] = []
     frames: list[FrameOutput] = []
-    for chunk in chunks:
-        for out in rx.push(chunk):
-            if isinstance(out, PoseEstimate):
-                poses.append(out)
-            elif isinstance(out, StateChange):
-                changes.append(out)
-            elif isinstance(out, FrameOutput):
-                frames.append(out)
+    for out in [o for chunk in chunks for o in rx.push(chunk)] + rx.finish():
+        if isinstance(out, PoseEstimate):
+            poses.append(out)
+        elif isinstance(out, StateChange):
+            changes.append(out)
+        elif isinstance(out, FrameOutput):
+            frames.append(out)
     t = np.array([p.t_us for p in poses], np.int64)
     err = np.array([])
     if len(t):

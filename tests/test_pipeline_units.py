@@ -113,7 +113,7 @@ def test_umeyama_undoes_a_rigid_motion_and_ate_is_zero():
 
 
 def test_buffer_keeps_raw_chunks_and_cuts_time_windows():
-    buf = EventBuffer(keep_us=100)
+    buf = EventBuffer()
     first = make_events([0, 10, 20], [1, 2, 3], [4, 5, 6], [1, -1, 1])
     buf.append(first)
     buf.append(make_events([30, 40], [7, 0], [1, 2], [1, 1]))
@@ -121,8 +121,9 @@ def test_buffer_keeps_raw_chunks_and_cuts_time_windows():
     window = buf.between(10, 35)
     assert window["t"].tolist() == [10, 20, 30] and window["x"].tolist() == [2, 3, 7]
     assert len(buf.between(50, 60)) == 0
-    buf.append(make_events([300], [0], [0], [1]))  # older chunks fall out of the window
-    assert buf.span == (300, 300)
+    buf.append(make_events([300], [0], [0], [1]))
+    buf.forget_before(25)  # the chunks that end before go
+    assert buf.span == (30, 300) and buf.between(0, 400)["t"].tolist() == [30, 40, 300]
 
 
 def test_columns_carry_ideal_coordinates_from_the_undistortion_table():

@@ -8,7 +8,7 @@ windows somebody asks for become columns, with their undistorted coordinates.
 
 from __future__ import annotations
 
-from collections import deque
+import bisect
 from dataclasses import dataclass, fields
 
 import numba
@@ -94,32 +94,37 @@ def to_columns(
 
 
 class EventBuffer:
-    def __init__(self, keep_us: int) -> None:
-        self.keep_us = keep_us
-        self._chunks: deque[np.ndarray] = deque()
+    """Recent chunks, kept until ``forget_before`` says nobody will read them again."""
+
+    def __init__(self) -> None:
+        self._chunks: list[np.ndarray] = []
+        self._ends: list[int] = []
+        """Each chunk's last event time, for bisecting."""
 
     def append(self, events: np.ndarray) -> None:
-        """Keep ``events`` (structured, ``EVENT_DTYPE``, time-sorted up to jitter)."""
-        if not len(events):
-            return
-        self._chunks.append(events)
-        newest = int(events["t"][-1])
-        while int(self._chunks[0]["t"][-1]) < newest - self.keep_us:
-            self._chunks.popleft()
+        """Keep ``events`` (structured, ``EVENT_DTYPE``, time-sorted, after those kept)."""
+        if len(events):
+            self._chunks.append(events)
+            self._ends.append(int(events["t"][-1]))
+
+    def forget_before(self, t_us: int) -> None:
+        """Drop the chunks that end before ``t_us``."""
+        k = bisect.bisect_left(self._ends, t_us)
+        del self._chunks[:k], self._ends[:k]
 
     @property
     def span(self) -> tuple[int, int] | None:
         if not self._chunks:
             return None
-        return int(self._chunks[0]["t"][0]), int(self._chunks[-1]["t"][-1])
+        return int(self._chunks[0]["t"][0]), self._ends[-1]
 
     def parts_between(self, t0: int, t1: int) -> list[np.ndarray]:
         """Views of the kept chunks cut to ``t0 <= t < t1``, in time order."""
         parts = []
-        for chunk in self._chunks:
+        for chunk in self._chunks[bisect.bisect_left(self._ends, t0) :]:
             ts = chunk["t"]
-            if ts[-1] < t0 or ts[0] >= t1:
-                continue
+            if ts[0] >= t1:
+                break
             parts.append(chunk[first_at(ts, t0) : first_at(ts, t1)])
         return parts
 
@@ -129,6 +134,3 @@ class EventBuffer:
         if len(parts) == 1:
             return parts[0]
         return np.concatenate(parts) if parts else np.empty(0, EVENT_DTYPE)
-
-    def clear(self) -> None:
-        self._chunks.clear()

@@ -19,6 +19,12 @@ Only one stage touches every event while the marker is tracked: the compiled tri
 (``triage.EventTriage``), which keeps each pixel's latest burst times for the decoder and hands
 the tracker the events near its edges. Detection reads the buffered raw chunks of its window;
 nothing copies or undistorts the whole stream.
+
+Nothing depends on where the source cut the stream into chunks (a camera's driver, a file reader
+and the simulator all cut it differently): detection runs at scheduled event times on the events
+before them, and tracking takes the stream in pieces cut on a fixed grid of event time, each
+processed once an event at or after its end has arrived. At most one piece (2 ms) waits for the
+next chunk; ``finish`` processes it at the end of a recording.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ import numpy as np
 
 from occ.profiles import get_profile
 from occ.stream import ReceivedMessage, StreamDecoder
-from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
+from receiver.pipeline.buffer import EventBuffer, to_columns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.decoder import CellReader, FrameRead, read_stride
 from receiver.pipeline.detector import Detection, MarkerNotFound, detect
@@ -48,7 +54,8 @@ log = logging.getLogger(__name__)
 
 DETECTING, TRACKING = "detecting", "tracking"
 _SEGMENT_US = 2000
-"""Longest stretch of events triaged with one tracker mask: the edges move little meanwhile."""
+"""Period of the event-time grid that tracking cuts the stream on: each piece is triaged with one
+tracker mask (the edges move little meanwhile)."""
 
 
 @dataclass(frozen=True)
@@ -106,8 +113,12 @@ class Receiver:
             profile=config.profile, cells=config.cells, message_size=message_size
         )
         self._filter = EventFilter(config.filters, cam.width, cam.height)
-        keep = config.detector.window_us + 4 * int(config.frame_us)
-        self._buffer = EventBuffer(keep)
+        self._buffer = EventBuffer()
+        self._keep_us = config.detector.window_us + 4 * int(config.frame_us)
+        """How far back of the next detection, or of the cursor, events are kept: a lock reads
+        the frames of its detection window again."""
+        self._cursor = 0
+        """While tracking, the events before this time have been processed."""
         # Allocated once (with the camera's undistortion table), reset at every lock.
         self._triage = EventTriage(
             cam.undistort_table, config.refresh_us / 2, config.data_every == 1
@@ -140,24 +151,40 @@ class Receiver:
         st.last_event_us = int(chunk["t"][-1])
         st.events += len(chunk)
         with self._cpu("filter"):
-            events = self._filter(chunk)
-            self._buffer.append(events)
-        if not len(events):
-            return []
-        out: list[Output] = []
-        if self.state == DETECTING:
-            out += self._try_detect(int(events["t"][-1]))
-            if self.state == TRACKING:  # the lock read the buffered events already
-                events = events[:0]
-        if self.state == TRACKING:
-            out += self._follow(events)
-        return out
+            self._buffer.append(self._filter(chunk))
+        # The next chunk may hold more events at this one's last time, none before it.
+        return self._advance(st.last_event_us)
 
     def finish(self) -> list[Output]:
-        """Flush at the end of a recording (nothing is pending in this design)."""
-        return []
+        """Process what is held back at the end of a recording: the events after the last
+        complete piece of the grid."""
+        last = self.stats.last_event_us
+        return [] if last is None else self._advance(last + 1, final=True)
 
     # --- stages ------------------------------------------------------------------------------
+    def _advance(self, until: int, final: bool = False) -> list[Output]:
+        """Process the stream up to ``until`` (every event before it has arrived): detection
+        at its scheduled times on the events before them, tracking and decoding in pieces cut
+        on a fixed grid of event time (``_follow``). Nothing depends on where the source cut
+        the stream into chunks, so a recording gives the same outputs however it is read."""
+        out: list[Output] = []
+        window = self.config.detector.window_us
+        while True:
+            if self.state == TRACKING:
+                out += self._follow(until, final=final)
+                if self.state == TRACKING:
+                    self._buffer.forget_before(self._cursor - self._keep_us)
+                    return out
+            if self._next_attempt_us is None:
+                span = self._buffer.span
+                if span is None:
+                    return out
+                self._next_attempt_us = span[0] + window
+            if self._next_attempt_us > until:
+                self._buffer.forget_before(self._next_attempt_us - self._keep_us)
+                return out
+            out += self._try_detect(self._next_attempt_us)
+
     @contextmanager
     def _cpu(self, stage: str):
         t0 = time.process_time()
@@ -167,16 +194,12 @@ class Receiver:
             self.stats.cpu_s[stage] += time.process_time() - t0
 
     def _try_detect(self, now: int) -> list[Output]:
-        span = self._buffer.span
+        """Detect the marker in the window of events before ``now``; lock on it if it holds."""
         window = self.config.detector.window_us
-        if self._next_attempt_us is None:
-            self._next_attempt_us = span[0] + window
-        if now < self._next_attempt_us:
-            return []
         cpu0 = time.process_time()
         try:
             with self._cpu("detect"):
-                found = detect(self._buffer.parts_between(now - window, now + 1), self.config)
+                found = detect(self._buffer.parts_between(now - window, now), self.config)
             return self._lock(found, now)
         except MarkerNotFound as exc:
             self._detection_failed(now, str(exc), time.process_time() - cpu0)
@@ -202,7 +225,7 @@ class Receiver:
         self._tracker = EdgeTracker(self.config, T, t_lock, found.flow_px_per_ms)
         if not found.moving:
             with self._cpu("lock"):  # a still detection may lag a slow drift: snap to the ring
-                recent = self._buffer.between(now - self.config.tracker.capture_us, now + 1)
+                recent = self._buffer.between(now - self.config.tracker.capture_us, now)
                 recent = to_columns(recent, self.config.camera.undistort_table)
                 if self._tracker.capture(recent["xu"], recent["yu"], now):
                     T = self._tracker.T_cam_world
@@ -221,13 +244,13 @@ class Receiver:
         self.state = TRACKING
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
         out.append(self._pose_output(t_lock, T))
-        first = self._reader.window(self._next_frame)[0] - self._triage.gap_us
-        track_from = t_lock if found.moving else now + 1
+        track_from = t_lock if found.moving else now
+        self._cursor = min(
+            self._reader.window(self._next_frame)[0] - self._triage.gap_us, track_from
+        )
         losses = self.stats.losses  # a lock lost on its own buffered events never stood
-        for part in self._buffer.parts_between(first, track_from):
-            out += self._follow(part, track=False)
-        for part in self._buffer.parts_between(track_from, now + 1):
-            out += self._follow(part)
+        out += self._follow(track_from, track=False, final=True)
+        out += self._follow(now, final=True)
         frames = [o for o in out if isinstance(o, FrameOutput)]
         if self.state != TRACKING:
             self.stats.losses = losses
@@ -257,25 +280,35 @@ class Receiver:
             return f"verify: only {fit:.0%} of the events near the ring lie on its edges"
         return None
 
-    def _follow(self, events: np.ndarray, track: bool = True) -> list[Output]:
-        """Triage ``events`` in short segments, cut where a frame's time span ends, so that each
-        frame is read as soon as its pixels' bursts are complete (and before the next ones)."""
+    def _follow(self, until: int, track: bool = True, final: bool = False) -> list[Output]:
+        """Triage (and track) the events from the cursor on, in pieces that end where the next
+        frame's time span ends (its pixels' bursts are then complete, and it is read before the
+        next ones come in) or at the next line of a ``_SEGMENT_US`` grid, whichever is first.
+        A piece is processed once every event before its end has arrived (``until``); with
+        ``final``, the last one ends at ``until`` itself."""
         out: list[Output] = []
-        while self.state == TRACKING and len(events):
-            end = self._reader.window(self._next_frame)[1]
-            first = int(events["t"][0])
-            if first >= end:  # the frame's bursts are complete
-                out += self._decode(end)
+        per_ms = self.config.tracker.max_events_per_ms
+        while self.state == TRACKING:
+            start, frame_end = self._reader.window(self._next_frame)
+            if self._cursor >= frame_end:  # the frame's bursts are complete
+                out += self._decode(frame_end)
                 continue
-            cut = max(1, first_at(events["t"], min(end, first + _SEGMENT_US)))
-            self._triage.mark_us = self._reader.window(self._next_frame)[0]
+            end = min(frame_end, (self._cursor // _SEGMENT_US + 1) * _SEGMENT_US)
+            if end > until:
+                if not final or self._cursor >= until:
+                    break
+                end = until
+            parts = self._buffer.parts_between(self._cursor, end)
+            self._cursor = end
+            if not parts:
+                continue
+            self._triage.mark_us = start
             with self._cpu("triage"):
                 if track:
                     self._select_near_edges()
-                near = self._triage(events[:cut], self.config.tracker.max_events_per_ms)
+                near = self._triage(*parts, per_ms=per_ms)
             if track:
                 out += self._track(near)
-            events = events[cut:]
         return out
 
     def _select_near_edges(self) -> None:

@@ -67,11 +67,11 @@ def _burst(surface, e, epoch, gap_us, shift, mark):
 
 
 @numba.njit(cache=True, nogil=True)
-def _triage(events, surface, epoch, gap_us, tiles, shift, every, mark):
+def _triage(events, surface, epoch, gap_us, tiles, shift, every, first, mark):
     """Update ``surface[y >> shift, x >> shift, polarity] = (latest burst's start, its last
     event, first burst's start from ``mark`` on)`` from the pixels on the stride's grid; return
-    the indices of the events on the marked ``tiles``, of every ``every``-th event (the first,
-    then every ``every``-th).
+    the indices of the events on the marked ``tiles``, of every ``every``-th event from index
+    ``first`` on (``first < every``: a call continuing another's thinning).
 
     ``events`` is the structured chunk itself: numba reads each record's fields in one go, which
     runs a third faster than four strided field views. With a stride, whether an event lies on
@@ -82,7 +82,7 @@ def _triage(events, surface, epoch, gap_us, tiles, shift, every, mark):
     k = 0
     off_grid = (1 << shift) - 1
     if not off_grid:  # every event is on the grid: one pass (the blocks measured slower here)
-        countdown = 1
+        countdown = first + 1
         for i in range(n):
             e = events[i]
             _burst(surface, e, epoch, gap_us, shift, mark)
@@ -102,7 +102,7 @@ def _triage(events, surface, epoch, gap_us, tiles, shift, every, mark):
             g += ((e.x | e.y) & off_grid) == 0
         for j in range(g):
             _burst(surface, events[on_grid[j]], epoch, gap_us, shift, mark)
-        for i in range(-(-b0 // every) * every, b1, every):
+        for i in range(b0 + (first - b0) % every, b1, every):
             e = events[i]
             selected[k] = i
             k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
@@ -220,27 +220,40 @@ class EventTriage:
         self._tiles[:] = False
         self._edges = None
 
-    def __call__(self, events: np.ndarray, per_ms: float | None = None) -> EventColumns:
-        """Integrate ``events`` (structured) into the surfaces; the near-edge ones as columns,
-        evenly thinned to at most ``per_ms`` per millisecond of ``events`` (None: all)."""
-        if not len(events):
-            return to_columns(events, self._table)
-        if int(events["t"][-1]) - self.epoch_us > _REBASE_US:
-            shift = int(events["t"][0]) - self.epoch_us - (1 << 20)
+    def __call__(self, *parts: np.ndarray, per_ms: float | None = None) -> EventColumns:
+        """Integrate the time-sorted event ``parts`` (structured; consecutive stretches of one
+        stream, e.g. the ends of two chunks) into the surfaces; the near-edge ones as columns,
+        evenly thinned to at most ``per_ms`` per millisecond of the parts (None: all). The parts
+        are read in place, and give what their concatenation would."""
+        parts = tuple(p for p in parts if len(p))
+        if not parts:
+            return EventColumns.empty()
+        t_first, t_last = int(parts[0]["t"][0]), int(parts[-1]["t"][-1])
+        if t_last - self.epoch_us > _REBASE_US:
+            shift = t_first - self.epoch_us - (1 << 20)
             self.surface[:] = np.maximum(self.surface.astype(np.int64) - shift, _NEVER)
             self.epoch_us += shift
-        most = len(events)
-        if per_ms is not None:
-            most = max(int(per_ms * (int(events["t"][-1]) - int(events["t"][0]) + 1) / 1000), 1)
+        n = sum(len(p) for p in parts)
+        most = n if per_ms is None else max(int(per_ms * (t_last - t_first + 1) / 1000), 1)
         # Only every k-th event is looked up in the tiles, k from the share that lay near the
         # edges last time: at 140 M events a second the tracker keeps one near event in ten.
-        every = max(-int(-len(events) * self._near_share // most), 1)
+        every = max(-int(-n * self._near_share // most), 1)
         surface, epoch, tiles = self.surface, self.epoch_us, self._tiles
         mark = min(max(self.mark_us - epoch, _NEVER), 1 << 30)
-        near = _triage(events, surface, epoch, self.gap_us, tiles, self._shift, every, mark)
-        self._near_share = len(near) * every / len(events)
-        near = near[:: -(-len(near) // most)] if len(near) > most else near
-        return to_columns(events, self._table, near)
+        near, seen = [], 0
+        for p in parts:
+            first = -seen % every
+            near.append(
+                _triage(p, surface, epoch, self.gap_us, tiles, self._shift, every, first, mark)
+            )
+            seen += len(p)
+        found = sum(len(i) for i in near)
+        self._near_share = found * every / n
+        step, taken, columns = max(-(-found // most), 1), 0, []
+        for p, i in zip(parts, near, strict=True):
+            columns.append(to_columns(p, self._table, i[-taken % step :: step]))
+            taken += len(i)
+        return EventColumns.concatenate(columns)
 
     def track_near(self, a: np.ndarray, b: np.ndarray, reach_px: float) -> None:
         """Select the events within about ``reach_px`` of the segments ``a[i] -> b[i]`` (ideal
