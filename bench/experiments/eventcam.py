@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,7 +14,7 @@ from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.pipeline.config import ReceiverConfig, TrackerParams
 from receiver.pipeline.metrics import held_s
-from receiver.pipeline.receiver import FrameOutput, Receiver
+from receiver.pipeline.receiver import FrameOutput, Output, Receiver
 from receiver.pipeline.report import DecodeLog, FrameTruth
 from receiver.sim import HandHeldMotion, Scene, SensorModel, simulate
 
@@ -134,8 +135,13 @@ def run_event_receiver(
     recording = simulate(scene, duration_s=duration_s)
     frames: list[tuple[int, int]] = []
     first_read_us = None
-    for chunk in recording:
-        outputs = receiver.push(chunk)
+
+    def batches() -> Iterator[list[Output]]:
+        for chunk in recording:
+            yield receiver.push(chunk)
+        yield receiver.finish()
+
+    for outputs in batches():
         log.add(outputs)
         for o in outputs:
             if isinstance(o, FrameOutput) and first_read_us is None:
@@ -144,7 +150,6 @@ def run_event_receiver(
                 errors = log.truth.errors(o.read.bits, o.read.t_us)
                 if errors is not None:  # None: the read matched a blank, not a data refresh
                     frames.append((o.read.t_us, errors))
-    log.add(receiver.finish())
     t = np.array(log.pose_t, np.int64)
     poses = np.array(log.poses).reshape(-1, 4, 4)
     truth = recording.pose_at(t) if len(t) else np.empty((0, 4, 4))

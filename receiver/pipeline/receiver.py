@@ -20,11 +20,11 @@ Only one stage touches every event while the marker is tracked: the compiled tri
 the tracker the events near its edges. Detection reads the buffered raw chunks of its window;
 nothing copies or undistorts the whole stream.
 
-Nothing depends on where the source cut the stream into chunks (a camera's driver, a file reader
-and the simulator all cut it differently): detection runs at scheduled event times on the events
-before them, and tracking takes the stream in pieces cut on a fixed grid of event time, each
-processed once an event at or after its end has arrived. At most one piece (2 ms) waits for the
-next chunk; ``finish`` processes it at the end of a recording.
+Nothing depends on where the source cut a time-sorted stream into chunks (a camera's driver, a
+file reader and the simulator all cut it differently): detection runs at scheduled event times on
+the events before them, and tracking takes the stream in pieces cut on a fixed grid of event
+time, each processed once an event at or after its end has arrived. At most one piece (2 ms)
+waits for the next chunk; ``finish`` processes it at the end of a recording.
 """
 
 from __future__ import annotations

@@ -283,9 +283,12 @@ def to_events(
 ) -> np.ndarray:
     """Delay, quantise to microseconds, cap the readout rate, and pack as events sorted by time
     together with the already packed ``pending`` events (held back from an earlier window)."""
-    t = t + sensor.latency_us
+    delay = sensor.latency_us
     if sensor.jitter_us:
-        t = t + sensor.jitter_us * rng.standard_normal(len(t))
+        # No event is read out before its change happened: an early one would land in a time
+        # already handed out in an earlier chunk, out of order.
+        delay = np.maximum(delay + sensor.jitter_us * rng.standard_normal(len(t)), 0.0)
+    t = t + delay
     t_us = np.maximum(np.rint(t), 0).astype(np.int64)
     if sensor.max_rate_hz is not None and len(t_us):
         keep = _readout_cap(t_us, sensor.max_rate_hz * 1e-3, rng)
