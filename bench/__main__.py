@@ -93,23 +93,32 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often
   here than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its
   throughput above ours at N = 16; the paper found the opposite. At the `standard` scale our
-  receiver reads 97-98% of the data frames bit-exact up to 1 px/ms, 93-98% at 2-3 px/ms, 92-97%
-  at 4 px/ms, and at 6 px/ms 80% with `robust` and 70% with `paper`, where AprilTag and ArUco
-  (without blank frames) still decode 96-98% of their codes. The table's last column says why.
-  At every flow the receiver tracks 92-98% of the clip with at most one loss; the missed frames
-  are reads with a few wrong bits, which `robust`'s FEC absorbs (2.4 kbit/s at 6 px/ms) and
-  which stall the `paper` profile (no frame header: one lost frame stops it until the
-  transmitter loops round). At the 6 px/ms clips' flow peak (9-12 px/ms) the pose slides about
-  9 cm off the ring: `robust`'s comes back, `paper`'s is lost. Until commit e4f73ea the `paper`
+  receiver reads 93-98% of the data frames bit-exact from 1 to 4 px/ms (and 98% with `robust`
+  at 0.5 px/ms, 90% with `paper`, whose first two locks read the 'L' no better upright than
+  turned and were dropped within 0.2 s), and at 6 px/ms 82% with `paper` and 68% with `robust`,
+  where AprilTag and ArUco (without blank frames) still decode 96-98% of their codes. The
+  table's last column says why.
+  At every flow the receiver tracks 85-98% of the clip with at most two losses; the missed
+  frames are reads with a few wrong bits, which `robust`'s FEC absorbs (2.0 kbit/s at 6 px/ms)
+  and which stall the `paper` profile (no frame header: one lost frame stops it until the
+  transmitter loops round). At the 6 px/ms clips' flow peak (9-12 px/ms) the pose can slide
+  about 9 cm off the ring: in this run `robust` lost its lock once (3% of the clip tracked more
+  than 5 cm off) and `paper` kept it; in the previous one it was the other way round. Until
+  commit e4f73ea the `paper`
   clip then locked again on a wrong pose and tracked it for over a second (28% read, 55% of the
   clip more than 5 cm off): 13% too near, it fit the ring's two near sides and took the screen's
   border (dark inside, bright outside, like the ring's inner edge) for the other two, whose
   outer edges then lay on the wall and fired nothing. The tracker now drops a pose whose outer
   edge stays silent for 30 updates while the motion sweeps it; that lock fails its
   verification and the next one is right. (Dropped after 10 updates, `robust`'s slide became a
-  loss and a 190 ms relock: 68% read.) Replays of saved events cut into 10 ms chunks differ from
-  the simulator's own chunks by the odd event at a chunk's edge, and the receiver, which tries
-  detection at each chunk's end, then diverges: each clip is one chaotic run. Until commit
+  loss and a 190 ms relock: 68% read.) Until commit 3fb1327 the receiver's outputs depended on
+  where the stream was cut into chunks (it tried detection at each chunk's end and cut its
+  triage segments from each chunk's first event), so replays of saved events in 10 ms cuts
+  diverged from the simulator's own chunks; now any cutting gives the same outputs. Each clip is
+  still one run in which a few events decide where a detection locks: until commit 2506078 the
+  simulator put about ten events per clip out of order at chunk edges, and a replay of the
+  0.5 px/ms `paper` clip's events in 10 ms cuts, which moves those few, locked right at once and
+  lost nothing. Until commit
   f958734 a frame under fast motion was read from each pixel's latest burst, which motion had
   often restarted after the display's switch: a 10 ms replay of the `paper` clip read 33 of 59
   frames (50 after; 36 and 55 through the true pose). Before commit b8d5afa the tracker's edges
