@@ -223,7 +223,7 @@ def test_noise_without_marker_reports_why_nothing_locked():
     assert rx.stats.detection_failures  # each reason says which stage gave up, and why
 
 
-def test_decode_cli_writes_message_trajectory_and_report(tmp_path):
+def test_decode_cli_writes_message_trajectory_and_report(tmp_path, capsys):
     from receiver.io import write_events
 
     scene = _scene("robust", STATIC)
@@ -248,7 +248,16 @@ def test_decode_cli_writes_message_trajectory_and_report(tmp_path):
     assert report["ber"] == 0.0
     files = list((tmp_path / "out" / "messages").iterdir())
     assert [f.read_bytes() for f in files] == [MESSAGE]
-    assert (tmp_path / "out" / "trajectory.tum").read_text().count("\n") > 10
+    smoothed = np.loadtxt(tmp_path / "out" / "trajectory.tum")
+    assert len(smoothed) > 10
+    # The tracker's own poses (a still camera's hardly move): at the same times.
+    args = ["decode", str(path), "--scene", str(tmp_path / "scene.json"), "--cells", "16"]
+    assert cli_main([*args, "--pose-smoothing-ms", "0", "--out", str(tmp_path / "raw")]) == 0
+    raw = np.loadtxt(tmp_path / "raw" / "trajectory.tum")
+    assert np.array_equal(raw[:, 0], smoothed[:, 0])
+    assert np.abs(raw[:, 1:4] - smoothed[:, 1:4]).max() < 1e-3
+    code = cli_main([*args, "--pose-smoothing-ms", "-1", "--out", str(tmp_path / "bad")])
+    assert code == 2 and "pose smoothing must be >= 0" in capsys.readouterr().err
 
 
 def test_decode_cli_reports_a_calibration_that_does_not_fit(tmp_path, capsys):

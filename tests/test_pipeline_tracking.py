@@ -307,8 +307,19 @@ def test_tracking_follows_a_sway_after_a_still_lock(tmp_path):
         for k in range(1, 13)
     ]
     log, rec = _run(tmp_path, keys, 1.2)
-    t = np.array(log.pose_t)
-    moving = t > 620_000
-    errors = pose_errors(t[moving], np.array(log.poses)[moving], rec.pose_at(t[moving]))
-    assert errors.ate_rmse_m < 0.015  # the paper's hand-held ATE is 1.4-2.0 cm
+
+    def ate_m(log: DecodeLog) -> float:
+        t = np.array(log.pose_t)
+        moving = t > 620_000
+        errors = pose_errors(t[moving], np.array(log.poses)[moving], rec.pose_at(t[moving]))
+        return errors.ate_rmse_m
+
+    assert ate_m(log) < 0.01  # the paper's hand-held ATE is 1.4-2.0 cm
     assert log.receiver.stats.losses == 0
+    # The tracker's own updates, unsmoothed, jitter between tilt and sideways shift.
+    raw = DecodeLog(Receiver(ReceiverConfig(CAMERA, pose_smoothing_us=0)))
+    for chunk in rec:
+        raw.add(raw.receiver.push(chunk))
+    raw.add(raw.receiver.finish())
+    assert len(raw.pose_t) == len(log.pose_t)
+    assert ate_m(log) < 0.8 * ate_m(raw)

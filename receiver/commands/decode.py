@@ -41,6 +41,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=int,
         help="message bytes (needed by the paper profile, which has no header)",
     )
+    p.add_argument(
+        "--pose-smoothing-ms",
+        type=float,
+        default=5.0,
+        help="fit each pose to the tracker's updates within this many ms of it (0: raw updates)",
+    )
     p.add_argument("--scene", type=Path, help="simulator scene.json: ground truth for the BER")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.set_defaults(func=run)
@@ -87,6 +93,7 @@ def _run(args: argparse.Namespace) -> int:
         profile=args.profile,
         refresh_hz=args.refresh_hz,
         marker_size_m=args.marker_size,
+        pose_smoothing_us=round(args.pose_smoothing_ms * 1000),
     )
     receiver = Receiver(config, message_size=args.message_size)
     truth = None

@@ -189,6 +189,9 @@ class ReceiverConfig:
     decoder: DecoderParams = field(default_factory=DecoderParams)
     pose_interval_us: int = 1000
     """Longest gap between two output poses while the camera (and pose) stand still."""
+    pose_smoothing_us: int = 5000
+    """Each output pose is a straight line fitted to the poses within this much event time of it
+    (``smoothing.PoseSmoother``), and comes this much later; 0 gives the tracker's own."""
 
     def __post_init__(self) -> None:
         get_profile(self.profile)  # raises with the list of valid names
@@ -196,6 +199,8 @@ class ReceiverConfig:
             raise ValueError(f"refresh rate must be 1..1000 Hz, got {self.refresh_hz}")
         if self.marker_size_m <= 0:
             raise ValueError(f"marker size must be positive metres, got {self.marker_size_m}")
+        if self.pose_smoothing_us < 0:
+            raise ValueError(f"pose smoothing must be >= 0 us, got {self.pose_smoothing_us}")
         MarkerGeometry(self.cells, self.ring)  # raises for an unsupported N
 
     @cached_property

@@ -1,9 +1,10 @@
 """The streaming receiver: detect -> track + decode -> (loss) -> detect again, without restarting.
 
 ``Receiver.push(chunk)`` takes an event chunk and returns what it produced: poses, read frames,
-completed messages and state changes, in time order. The live daemon and the offline ``decode``
-command share it. The stream decoder survives tracking losses, so symbols gathered before a loss
-still count towards the message.
+completed messages and state changes, in time order but for the poses, which come once the
+updates after them have smoothed them (``ReceiverConfig.pose_smoothing_us``, 5 ms). The live
+daemon and the offline ``decode`` command share it. The stream decoder survives tracking losses,
+so symbols gathered before a loss still count towards the message.
 
 Detection attempts are spaced in event time (``DetectorParams.retry_us``), so a recording decodes
 the same on any machine; only a real-time source also spaces them by their CPU cost. A detection
@@ -46,6 +47,7 @@ from receiver.pipeline.decoder import CellReader, FrameRead, read_stride
 from receiver.pipeline.detector import Detection, MarkerNotFound, detect
 from receiver.pipeline.filters import EventFilter
 from receiver.pipeline.pose import interpolate_pose, project_ideal
+from receiver.pipeline.smoothing import PoseSmoother
 from receiver.pipeline.tracker import EdgeTracker
 from receiver.pipeline.triage import EventTriage
 from receiver.poses import invert
@@ -137,6 +139,8 @@ class Receiver:
         them (a camera's lost packets, the virtual camera skipping ahead)."""
         self._pose_t: list[int] = []
         self._pose_T: list[np.ndarray] = []
+        """The tracked poses (T_cam_world) that the decoder reads frames through."""
+        self._smoother = PoseSmoother(config.pose_smoothing_us)
         self._last_pose_out = -(1 << 62)
 
     # --- public ------------------------------------------------------------------------------
@@ -159,7 +163,9 @@ class Receiver:
         """Process what is held back at the end of a recording: the events after the last
         complete piece of the grid."""
         last = self.stats.last_event_us
-        return [] if last is None else self._advance(last + 1, final=True)
+        if last is None:
+            return []
+        return self._advance(last + 1, final=True) + self._flush_poses()
 
     # --- stages ------------------------------------------------------------------------------
     def _advance(self, until: int, final: bool = False) -> list[Output]:
@@ -243,7 +249,7 @@ class Receiver:
         self._pose_t, self._pose_T = [t_lock], [T]
         self.state = TRACKING
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
-        out.append(self._pose_output(t_lock, T))
+        out += self._pose_output(t_lock, T)
         track_from = t_lock if found.moving else now
         self._cursor = min(
             self._reader.window(self._next_frame)[0] - self._triage.gap_us, track_from
@@ -260,6 +266,7 @@ class Receiver:
         if reason:
             self.state = DETECTING
             self._tracker = self._reader = None
+            self._smoother.flush()  # the poses of a lock that never stood
             raise MarkerNotFound(reason)
         self.stats.lock_times_us.append(now)
         return out
@@ -326,7 +333,7 @@ class Receiver:
         self.stats.losses += 1
         self._tracker = self._reader = None
         self._next_attempt_us = now + self.config.detector.window_us  # a fresh window of events
-        return [StateChange(now, DETECTING, reason)]
+        return [*self._flush_poses(), StateChange(now, DETECTING, reason)]
 
     def _track(self, events: np.ndarray) -> list[Output]:
         out: list[Output] = []
@@ -340,10 +347,10 @@ class Receiver:
                 self.stats.pose_updates += 1
                 self._pose_t.append(u.t_us)
                 self._pose_T.append(u.T_cam_world)
-                out.append(self._pose_output(u.t_us, u.T_cam_world))
+                out += self._pose_output(u.t_us, u.T_cam_world)
             now = int(events["t"][-1])
             if now - self._last_pose_out >= self.config.pose_interval_us:
-                out.append(self._pose_output(now, self._tracker.T_cam_world))
+                out += self._pose_output(now, self._tracker.T_cam_world)
             reason = self._out_of_view(self._tracker.T_cam_world) or self._off_edges()
             if reason:
                 return out + self._lose(now, reason)
@@ -443,6 +450,11 @@ class Receiver:
         if span and len(self._pose_t) > 64 and self._pose_t[32] < span[0]:
             del self._pose_t[:32], self._pose_T[:32]
 
-    def _pose_output(self, t_us: int, T_cam_world: np.ndarray) -> PoseEstimate:
+    def _pose_output(self, t_us: int, T_cam_world: np.ndarray) -> list[PoseEstimate]:
+        """Hand a tracked pose to the smoother; the smoothed poses it gives back."""
         self._last_pose_out = t_us
-        return PoseEstimate(t_us, invert(T_cam_world))
+        return [PoseEstimate(*p) for p in self._smoother.push(t_us, invert(T_cam_world))]
+
+    def _flush_poses(self) -> list[PoseEstimate]:
+        """The smoothed poses still held: the track has ended."""
+        return [PoseEstimate(*p) for p in self._smoother.flush()]
