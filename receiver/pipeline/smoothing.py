@@ -12,7 +12,7 @@ at 1 px/ms). The price: a pose is published once the updates ``half_us`` after i
 
 The fit is done on the 3x4 matrices and the rotation part is projected back onto the rotations
 (the nearest in the Frobenius norm): within a few milliseconds the rotations differ by a degree
-or two, where this equals fitting their angles.
+or two, where this agrees with fitting their angles to a thousandth of a degree.
 """
 
 from __future__ import annotations
@@ -96,12 +96,12 @@ class PoseSmoother:
     def _make_room(self) -> None:
         """Drop the poses no window still needs; grow if they all are (updates far denser than
         the tracker makes)."""
-        keep = int(np.searchsorted(self._t[: self._n], self._t[self._next] - self.half_us))
-        if keep == 0:
+        drop = int(np.searchsorted(self._t[: self._n], self._t[self._next] - self.half_us))
+        if drop == 0:
             self._t = np.concatenate([self._t, np.empty_like(self._t)])
             self._rows = np.concatenate([self._rows, np.empty_like(self._rows)])
             return
-        n = self._n - keep
-        self._t[:n] = self._t[keep : self._n]
-        self._rows[:n] = self._rows[keep : self._n]
-        self._n, self._next = n, self._next - keep
+        n = self._n - drop
+        self._t[:n] = self._t[drop : self._n]
+        self._rows[:n] = self._rows[drop : self._n]
+        self._n, self._next = n, self._next - drop
