@@ -414,33 +414,61 @@ def test_at_1_px_per_ms_the_first_lock_is_the_right_one():
     assert np.median(run["err"]) <= TRACKED_RMS_M
 
 
-@pytest.fixture
-def quarter_turned_detection(monkeypatch):
-    """Every detection comes back a quarter turn off (corners rolled, pose solved again), as
-    fast motion made them: the ring is square, so the turned pose lies on its edges too."""
+def _turned_detections(monkeypatch, turns: int, oriented: bool) -> None:
+    """Every detection whose burst showed the 'L' clearly (the others fail) comes back ``turns``
+    quarter turns off (corners rolled, pose solved again), as fast motion made them: the ring
+    is square, so the turned pose lies on its edges too. ``oriented``: whether it claims its
+    burst showed the 'L' that way."""
     detect = receiver_module.detect
 
     def turned(events, config):
         found = detect(events, config)
-        corners = np.roll(found.corners_px, -1, axis=0)
+        if not found.oriented:  # its turn is a guess: turning it need not make it wrong
+            raise MarkerNotFound("no clear 'L'")
+        corners = np.roll(found.corners_px, -turns, axis=0)
         world = config.geometry.locator_corners(config.marker_size_m)
-        return replace(found, corners_px=corners, T_cam_world=pnp(corners, world, config.camera))
+        T = pnp(corners, world, config.camera)
+        return replace(found, corners_px=corners, T_cam_world=T, oriented=oriented)
 
     monkeypatch.setattr(receiver_module, "detect", turned)
+
+
+@pytest.fixture
+def quarter_turned_detection(monkeypatch):
+    _turned_detections(monkeypatch, 1, oriented=True)
+
+
+@pytest.mark.parametrize("turns", [0, 1])
+def test_a_burst_without_a_clear_l_locks_only_if_the_frames_read_it_that_way_up(
+    slow_clip, monkeypatch, turns
+):
+    """Where the burst shows the ring but no clear 'L', its best guess of the turn stands only
+    if the frames read through the pose confirm it."""
+    _turned_detections(monkeypatch, turns, oriented=False)
+    run = _replay(*slow_clip)
+    if turns == 0:
+        assert [c.state for c in run["changes"]] == [TRACKING], [c.reason for c in run["changes"]]
+        assert run["err"][0] <= FIRST_POSE_MAX_M
+        assert sum(f.accepted for f in run["frames"]) > 10
+    else:
+        assert not run["changes"]
+        assert any("'L' this way up" in r for r in run["stats"].detection_failures)
 
 
 def test_a_lock_a_quarter_turn_off_is_dropped_within_a_few_frames(
     slow_clip, quarter_turned_detection
 ):
     """Issue 4: such a lock passed the locator score and the fit ratio, and read garbage to the
-    clip's end; the 'L' read through the pose must end it (or the lock's own verification)."""
+    clip's end; the lock's verification on the frames after its burst, or the 'L' read through
+    the pose, must end it."""
     run = _replay(*slow_clip)
     config = hand_held_config()
     changes = run["changes"]
     locks = [c for c in changes if c.state == TRACKING]
     drops = [c for c in changes if c.state == DETECTING]
     failures = run["stats"].detection_failures
-    assert locks or any("'L'" in reason for reason in failures), dict(failures)
+    refused = ("'L'", "inner locator reads at")
+    assert locks or any(r in reason for reason in failures for r in refused), dict(failures)
     within_us = (config.decoder.turn_frames + 1) * config.frame_us
     judged = [c for c in locks if c.t_us + within_us <= slow_clip[0].duration_us]
     assert judged or not locks, "no lock early enough in the clip to judge"

@@ -116,6 +116,10 @@ class Detection:
     orientation_score: float
     flow_px_per_ms: np.ndarray
     """Image flow found at the burst; zero for a still camera."""
+    oriented: bool = True
+    """Whether the burst showed the 'L' clearly. Under motion the ring may fit while it does
+    not (at 4 px per cell few bursts do): the corner order is then the burst's best guess, which
+    the frames read through the pose must confirm before the lock stands."""
 
     @property
     def moving(self) -> bool:
@@ -503,7 +507,11 @@ def _detect_moving(
         )
     corners = config.camera.project(world @ T[:3, :3].T + T[:3, 3])
     oriented, score = orient(corners - origin, burst.image, geo)
-    if score < params.min_orientation_score:
+    clear = score >= params.min_orientation_score
+    if not clear and (
+        agree < params.unoriented_edge_polarity
+        or np.linalg.norm(burst.flow) > params.max_unoriented_flow_px_per_ms
+    ):
         raise MarkerNotFound(
             f"spatial: no inner-locator 'L' found under motion (score {score:.2f}); check --cells"
         )
@@ -517,6 +525,7 @@ def _detect_moving(
         region.harmonic_ratio,
         score,
         burst.flow,
+        oriented=clear,
     )
 
 

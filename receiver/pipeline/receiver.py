@@ -126,10 +126,14 @@ class Receiver:
             cam.undistort_table, config.refresh_us / 2, config.data_every == 1
         )
         self._next_attempt_us: int | None = None
+        self._pending: Detection | None = None
+        """A detection under motion waiting for its first whole frame (``_lock``)."""
         self._tracker: EdgeTracker | None = None
         self._reader: CellReader | None = None
         self._next_frame = 0
         self._missed = 0
+        self._burst_frame_read_only = False
+        """Frame 0 of a lock under motion (the detected burst's) only times the frame clock."""
         self._probation: int | None = None
         """Frames left for a lock on probation to pass a frame check (``_failed_probation``)."""
         self._turn_leads: deque[float] = deque(maxlen=config.decoder.turn_frames)
@@ -204,8 +208,10 @@ class Receiver:
         window = self.config.detector.window_us
         cpu0 = time.process_time()
         try:
-            with self._cpu("detect"):
-                found = detect(self._buffer.parts_between(now - window, now), self.config)
+            found, self._pending = self._pending, None
+            if found is None:
+                with self._cpu("detect"):
+                    found = detect(self._buffer.parts_between(now - window, now), self.config)
             return self._lock(found, now)
         except MarkerNotFound as exc:
             self._detection_failed(now, str(exc), time.process_time() - cpu0)
@@ -246,6 +252,7 @@ class Receiver:
         framed = get_profile(self.config.profile).framed
         self._probation = self.config.decoder.probation_frames if found.moving and framed else None
         self._turn_leads.clear()
+        self._burst_frame_read_only = found.moving
         self._pose_t, self._pose_T = [t_lock], [T]
         self.state = TRACKING
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
@@ -255,6 +262,7 @@ class Receiver:
             self._reader.window(self._next_frame)[0] - self._triage.gap_us, track_from
         )
         losses = self.stats.losses  # a lock lost on its own buffered events never stood
+        counts = self.stats.frames_read, self.stats.pose_updates
         out += self._follow(track_from, track=False, final=True)
         out += self._follow(now, final=True)
         frames = [o for o in out if isinstance(o, FrameOutput)]
@@ -263,6 +271,10 @@ class Receiver:
             reason = out[-1].reason
             raise MarkerNotFound(f"verify: tracking failed on the buffered events ({reason})")
         reason = self._unverified(found, frames)
+        whole = self._reader.window(1)[1]
+        if reason and found.moving and whole > now:
+            self.stats.frames_read, self.stats.pose_updates = counts
+            return self._postpone(found, whole)
         if reason:
             self.state = DETECTING
             self._tracker = self._reader = None
@@ -271,6 +283,20 @@ class Receiver:
         self.stats.lock_times_us.append(now)
         return out
 
+    def _postpone(self, found: Detection, until: int) -> list[Output]:
+        """Lock on ``found`` again at ``until``, when its second frame is whole. Under motion
+        the frame of the burst itself reads poorly even at a right pose (the pose before the
+        burst is not known, and the scan-out shows half the frame before it): on five 240x180
+        clips at 1 px/ms right detections read it at 0.03-0.23 and the next frame at 0.74-1.0,
+        and a lock judged on the first alone was refused. The burst's frame only times the
+        clock (``_decode``), so nothing of this attempt reached the stream decoder; the next
+        attempt reads it again, the same."""
+        self.state = DETECTING
+        self._tracker = self._reader = None
+        self._smoother.flush()
+        self._pending, self._next_attempt_us = found, until
+        return []
+
     def _unverified(self, found: Detection, frames: list[FrameOutput]) -> str | None:
         """Why the lock on ``found`` does not stand, given the frames read from the buffer.
 
@@ -278,6 +304,14 @@ class Receiver:
         a wrong rotation, still reads at half the contrast) and keep the tracker on the ring's
         edges; a still lock only needs the locator to show."""
         q = self.config.detector
+        if found.moving:  # the burst's own frame reads poorly (``_postpone``)
+            frames = [f for f in frames if f.read.index > 0]
+            if not frames:
+                return "verify: no frame after the burst's was read"
+        if not found.oriented:
+            leads = [f.read.turns[0] - f.read.turns[1:].max() for f in frames]
+            if np.mean(leads) < self.config.decoder.min_turn_lead:
+                return "verify: neither the burst nor the frames after it read the 'L' this way up"
         best = max((f.read.locator_score for f in frames), default=None)
         need = q.min_lock_locator_score if found.moving else self.config.decoder.min_locator_score
         if best is not None and best < need:
@@ -391,6 +425,9 @@ class Receiver:
                 bursts = self._triage.bursts(t0, t1, box)
                 read = reader.read(m, bursts, self.pose_at)
             self.stats.frames_read += 1
+            if m == 0 and self._burst_frame_read_only:  # ``_postpone`` says why
+                out.append(FrameOutput(read, False))
+                continue
             seen = read.locator_score >= q.min_locator_score
             if not seen and any(a < t1 and t0 < b for a, b in self._gaps):
                 continue  # the source delivered nothing then: no evidence either way
