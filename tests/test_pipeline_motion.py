@@ -579,12 +579,17 @@ def test_detects_and_tracks_at_half_a_pixel_per_ms(slow_hand):
 
 
 @pytest.mark.slow
+def test_detects_and_tracks_at_1_px_per_ms():
+    """Seed 1 locked at 665 ms before its burst's 'L' was left to the frames when unclear."""
+    _assert_locks_and_tracks(_run(1.0, 1.0, seed=1))
+
+
+@pytest.mark.slow
 @pytest.mark.xfail(
-    reason="at 1-2 px/ms and 4 px per cell few compensated bursts read the 'L' clearly, so the "
-    "first (right) lock often comes after the 300 ms allowed: 88-665 ms over five seeds at "
-    "1 px/ms, see docs/BENCHMARKS.md, section tracking",
+    reason="at 2 px/ms and 4 px per cell wrong ring fits agree with the flow's polarities as "
+    "well as right ones (+0.97 to +1.0): five 1 s clips tracked poses more than 5 cm off for "
+    "0.5 s, and this one first locks 9 cm off at 333 ms",
     strict=False,
 )
-@pytest.mark.parametrize("flow", [1.0, 2.0])
-def test_detects_and_tracks_faster_motion(flow):
-    _assert_locks_and_tracks(_run(flow, 1.0, seed=1))
+def test_detects_and_tracks_at_2_px_per_ms():
+    _assert_locks_and_tracks(_run(2.0, 1.0, seed=1))

@@ -23,7 +23,8 @@ comes from the one compensated burst and its fitted locator square (``locate``).
 only a start for the ring's edges, one cell wide, and it ignores perspective: a few scaled copies
 of it are each pulled onto the ring's edge events around the burst (``EdgeTracker.capture``), and
 the pose that puts the most events on the edges wins. The locator's "L" is then read through
-that pose.
+that pose; where it is unclear but the fit is sound, the best guess of its turn goes on to the
+frames read after the burst, which must confirm it (``Detection.oriented``).
 
 Cost: a still camera must not pay for the motion path. The blink map reads a sample of the
 window, the flow is scored on a few thousand OFF events in one compiled pass, and the per-event

@@ -8,7 +8,8 @@ so symbols gathered before a loss still count towards the message.
 
 Detection attempts are spaced in event time (``DetectorParams.retry_us``), so a recording decodes
 the same on any machine; only a real-time source also spaces them by their CPU cost. A detection
-becomes a lock only once the frames still buffered verify it (``Receiver._unverified``). While
+becomes a lock only once the frames still buffered verify it (``Receiver._unverified``; under
+motion the frames after the detected burst's, waited for if need be: ``Receiver._postpone``). While
 tracking, a lock is dropped when the tracker leaves the ring's edges or an outer edge stays silent
 while the motion sweeps it (``EdgeTracker.contradicted``), the marker leaves the view,
 the inner locator goes unseen for several frames, or its 'L' reads upright barely better than
@@ -127,7 +128,7 @@ class Receiver:
         )
         self._next_attempt_us: int | None = None
         self._pending: Detection | None = None
-        """A detection under motion waiting for its first whole frame (``_lock``)."""
+        """A detection under motion waiting for the frame after its burst's (``_postpone``)."""
         self._tracker: EdgeTracker | None = None
         self._reader: CellReader | None = None
         self._next_frame = 0
@@ -232,7 +233,8 @@ class Receiver:
     def _lock(self, found: Detection, now: int) -> list[Output]:
         """Start tracking from ``found`` and read the frames still buffered. The lock stands
         only if the inner locator shows in one of them and tracking survives them; otherwise
-        this raises ``MarkerNotFound`` (a failed detection, not a loss)."""
+        this raises ``MarkerNotFound`` (a failed detection, not a loss), unless under motion the
+        frame after the burst's is still to come (``_postpone``)."""
         T, t_lock = found.T_cam_world, found.t_us
         self._tracker = EdgeTracker(self.config, T, t_lock, found.flow_px_per_ms)
         if not found.moving:
@@ -288,7 +290,8 @@ class Receiver:
         the frame of the burst itself reads poorly even at a right pose (the pose before the
         burst is not known, and the scan-out shows half the frame before it): on five 240x180
         clips at 1 px/ms right detections read it at 0.03-0.23 and the next frame at 0.74-1.0,
-        and a lock judged on the first alone was refused. The burst's frame only times the
+        so a lock judged on the first alone was refused (and a quarter-turned one once passed
+        on it at 0.6). The burst's frame only times the
         clock (``_decode``), so nothing of this attempt reached the stream decoder; the next
         attempt reads it again, the same."""
         self.state = DETECTING
@@ -300,9 +303,10 @@ class Receiver:
     def _unverified(self, found: Detection, frames: list[FrameOutput]) -> str | None:
         """Why the lock on ``found`` does not stand, given the frames read from the buffer.
 
-        Under motion a lock must show the inner locator clearly (a ring fit a ring width off, or
-        a wrong rotation, still reads at half the contrast) and keep the tracker on the ring's
-        edges; a still lock only needs the locator to show."""
+        Under motion a lock must show the inner locator clearly in the frames after the burst's
+        (a ring fit a ring width off, or a wrong rotation, still reads at half the contrast),
+        the right way up if the burst did not show it (``Detection.oriented``), and keep the
+        tracker on the ring's edges; a still lock only needs the locator to show."""
         q = self.config.detector
         if found.moving:  # the burst's own frame reads poorly (``_postpone``)
             frames = [f for f in frames if f.read.index > 0]
