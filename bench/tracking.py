@@ -169,9 +169,10 @@ def main() -> None:
         "one: a pose a ring width too near that read the white ring as the 'L' a quarter turn "
         "off and passed every other check (issue 4; at 1 px/ms such locks were tracked for up "
         "to 0.4 s per path, and the first right lock took up to 2.2 s). 'never' under first "
-        "lock: no lock during the clip (ATE etc. then have nothing to score). At 1 px/ms the "
-        "first lock still takes several attempts: at 4 px per cell few compensated bursts read "
-        "the 'L' clearly."
+        "lock: no lock during the clip (ATE etc. then have nothing to score). At 0.25 px/ms locks "
+        "still start wrong now and then: a ring fitted a ring width off reads the white ring as "
+        "the 'L' (seed 1's, from a burst without a clear 'L', 21 cm off, until the fit-ratio "
+        "check dropped it 0.19 s later)."
         "\n\n" + "\n".join(lines)
     )
     summary = [
