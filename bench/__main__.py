@@ -93,17 +93,18 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often
   here than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its
   throughput above ours at N = 16; the paper found the opposite. At the `standard` scale our
-  receiver reads 93-98% of the data frames bit-exact from 1 to 4 px/ms (and 98% with `robust`
-  at 0.5 px/ms, 90% with `paper`, whose first two locks read the 'L' no better upright than
-  turned and were dropped within 0.2 s), and at 6 px/ms 82% with `paper` and 68% with `robust`,
-  where AprilTag and ArUco (without blank frames) still decode 96-98% of their codes. The
-  table's last column says why.
-  At every flow the receiver tracks 85-98% of the clip with at most two losses; the missed
-  frames are reads with a few wrong bits, which `robust`'s FEC absorbs (2.0 kbit/s at 6 px/ms)
-  and which stall the `paper` profile (no frame header: one lost frame stops it until the
-  transmitter loops round). At the 6 px/ms clips' flow peak (9-12 px/ms) the pose can slide
-  about 9 cm off the ring: in this run `robust` lost its lock once (3% of the clip tracked more
-  than 5 cm off) and `paper` kept it; in the previous one it was the other way round. Until
+  receiver reads 90-97% of the data frames bit-exact from 0.5 to 4 px/ms, and at 6 px/ms 78%
+  with `paper` and 80% with `robust`, where AprilTag and ArUco (without blank frames) still
+  decode 96-98% of their codes. The table's last column says why.
+  At every flow the receiver tracks 94-98% of the clip without a loss; the missed frames are
+  reads with a few wrong bits, which `robust`'s FEC absorbs (2.4 kbit/s at 6 px/ms) and which
+  stall the `paper` profile (no frame header: one lost frame stops it until the transmitter
+  loops round; 1.7 kbit/s at 6 px/ms, 6.6 below). Since commit cfcda17 verifies a lock under
+  motion on the frame after its burst's, the 0.5 px/ms `paper` clip locks once at 0.08 s and
+  keeps it (97% read; 90% before, when its first two locks read the 'L' no better upright than
+  turned and were dropped within 0.2 s). At the 6 px/ms clips' flow peak (9-12 px/ms) the pose
+  can slide about 9 cm off the ring: in earlier runs one profile or the other lost its lock
+  there once; in this run neither did (1% of the `paper` clip more than 5 cm off). Until
   commit e4f73ea the `paper`
   clip then locked again on a wrong pose and tracked it for over a second (28% read, 55% of the
   clip more than 5 cm off): 13% too near, it fit the ring's two near sides and took the screen's
