@@ -273,14 +273,11 @@ class Receiver:
             reason = out[-1].reason
             raise MarkerNotFound(f"verify: tracking failed on the buffered events ({reason})")
         reason = self._unverified(found, frames)
-        whole = self._reader.window(1)[1]
-        if reason and found.moving and whole > now:
+        if reason and found.moving and (whole := self._reader.window(1)[1]) > now:
             self.stats.frames_read, self.stats.pose_updates = counts
             return self._postpone(found, whole)
         if reason:
-            self.state = DETECTING
-            self._tracker = self._reader = None
-            self._smoother.flush()  # the poses of a lock that never stood
+            self._end_track()  # its poses never stood
             raise MarkerNotFound(reason)
         self.stats.lock_times_us.append(now)
         return out
@@ -291,12 +288,9 @@ class Receiver:
         burst is not known, and the scan-out shows half the frame before it): on five 240x180
         clips at 1 px/ms right detections read it at 0.03-0.23 and the next frame at 0.74-1.0,
         so a lock judged on the first alone was refused (and a quarter-turned one once passed
-        on it at 0.6). The burst's frame only times the
-        clock (``_decode``), so nothing of this attempt reached the stream decoder; the next
-        attempt reads it again, the same."""
-        self.state = DETECTING
-        self._tracker = self._reader = None
-        self._smoother.flush()
+        on it at 0.6). The burst's frame only times the clock (``_decode``), so nothing of this
+        attempt reached the stream decoder; the next attempt reads it again, the same."""
+        self._end_track()
         self._pending, self._next_attempt_us = found, until
         return []
 
@@ -367,11 +361,15 @@ class Receiver:
 
     def _lose(self, now: int, reason: str) -> list[Output]:
         log.info("tracking lost at %d us: %s", now, reason)
-        self.state = DETECTING
         self.stats.losses += 1
-        self._tracker = self._reader = None
         self._next_attempt_us = now + self.config.detector.window_us  # a fresh window of events
-        return [*self._flush_poses(), StateChange(now, DETECTING, reason)]
+        return [*self._end_track(), StateChange(now, DETECTING, reason)]
+
+    def _end_track(self) -> list[PoseEstimate]:
+        """Back to detecting; the track's smoothed poses still held."""
+        self.state = DETECTING
+        self._tracker = self._reader = None
+        return self._flush_poses()
 
     def _track(self, events: np.ndarray) -> list[Output]:
         out: list[Output] = []
