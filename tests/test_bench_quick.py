@@ -48,6 +48,11 @@ def test_tiny_run_writes_reports_and_plots(tmp_path):
         if row["system"].startswith("ours"):  # why frames were missed: lock, losses, tracking
             assert 0 <= tracking["tracked_wrong"] <= tracking["tracked"] <= 1
             assert tracking["losses"] >= 0
+            # A frame read bit-exact passes its FEC too; `paper` frames count only bit-exact.
+            exact, got = np.array(row["exact"], bool), np.array(row["received"], bool)
+            assert exact.shape == got.shape and not np.any(exact & ~got)
+            if row["system"].endswith("paper)"):
+                assert np.array_equal(exact, got)
         else:
             assert tracking is None
     # Rerunning one experiment keeps the others' sections; one job gives the same results.
@@ -123,7 +128,7 @@ def test_streaming_marker_fits_the_view_at_the_papers_cell_size_or_less(sensor):
 def _run(messages: list[dict], first_read_s: float | None) -> EventRun:
     none = np.empty((0, 4, 4))
     return EventRun(
-        {"messages": messages}, np.empty(0), none, none, np.empty((0, 2)), first_read_s, 0
+        {"messages": messages}, np.empty(0), none, none, np.empty((0, 3)), first_read_s, 0
     )
 
 
@@ -140,7 +145,7 @@ def test_tracked_time_counts_each_pose_until_the_next_but_not_across_a_loss():
     truth = np.repeat(np.eye(4)[None], len(t), axis=0)
     poses = truth.copy()
     poses[1, 0, 3] = 0.2  # one pose 20 cm off
-    run = EventRun({}, t, poses, truth, np.empty((0, 2)), None, 0)
+    run = EventRun({}, t, poses, truth, np.empty((0, 3)), None, 0)
     assert run.tracked_s() == pytest.approx((1 + 1 + POSE_GAP_US / 1000 + 1) / 1000)
     assert run.tracked_s(wrong=True) == pytest.approx(0.001)
 

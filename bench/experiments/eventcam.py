@@ -94,7 +94,8 @@ class EventRun:
     truth: np.ndarray
     """(n, 4, 4) ground-truth T_world_cam at ``pose_t_us``."""
     frames: np.ndarray
-    """(m, 2) int64: time (us) and bit errors of every data frame the receiver accepted."""
+    """(m, 3) int64: time (us), bit errors and whether its FEC and CRC passed (framed profiles;
+    0 for ``paper``) of every data frame the receiver accepted."""
     first_read_s: float | None
     """When the receiver read its first data frame (accepted or not), on the clock of the
     report's times (seconds since the first event)."""
@@ -149,7 +150,7 @@ def run_event_receiver(
             if isinstance(o, FrameOutput) and o.accepted:
                 errors = log.truth.errors(o.read.bits, o.read.t_us)
                 if errors is not None:  # None: the read matched a blank, not a data refresh
-                    frames.append((o.read.t_us, errors))
+                    frames.append((o.read.t_us, errors, o.payload_bits > 0))
     t = np.array(log.pose_t, np.int64)
     poses = np.array(log.poses).reshape(-1, 4, 4)
     truth = recording.pose_at(t) if len(t) else np.empty((0, 4, 4))
@@ -159,7 +160,7 @@ def run_event_receiver(
         t,
         poses,
         truth,
-        np.array(frames, np.int64).reshape(-1, 2),
+        np.array(frames, np.int64).reshape(-1, 3),
         None if first_read_us is None else (first_read_us - start) / 1e6,
         time.perf_counter() - t0,
     )
