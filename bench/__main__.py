@@ -92,42 +92,42 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   frame's header, CRC and Reed-Solomon parity leave 96 of its 256 bits for data, so their
   goodput at small N is well under the `paper` profile's.
 - Baseline comparison: our frame camera is kinder than the paper's (global shutter, no
-  synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often
-  here than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its
-  throughput above ours at N = 16; the paper found the opposite. At the `standard` scale our
-  receiver reads 90-97% of the data frames bit-exact from 0.5 to 4 px/ms, and at 6 px/ms 78%
-  with `paper` and 80% with `robust`, where AprilTag and ArUco (without blank frames) still
-  decode 96-98% of their codes. The table's last column says why.
-  At every flow the receiver tracks 94-98% of the clip without a loss; the missed frames are
-  reads with a few wrong bits, which `robust`'s FEC absorbs (2.4 kbit/s at 6 px/ms) and which
-  stall the `paper` profile (no frame header: one lost frame stops it until the transmitter
-  loops round; 1.7 kbit/s at 6 px/ms, 6.6 below). Since commit cfcda17 verifies a lock under
-  motion on the frame after its burst's, the 0.5 px/ms `paper` clip locks once at 0.08 s and
-  keeps it (97% read; 90% before, when its first two locks read the 'L' no better upright than
-  turned and were dropped within 0.2 s). At the 6 px/ms clips' flow peak (9-12 px/ms) the pose
-  can slide about 9 cm off the ring: in earlier runs one profile or the other lost its lock
-  there once; in this run neither did (1% of the `paper` clip more than 5 cm off). Until
-  commit e4f73ea the `paper`
-  clip then locked again on a wrong pose and tracked it for over a second (28% read, 55% of the
-  clip more than 5 cm off): 13% too near, it fit the ring's two near sides and took the screen's
-  border (dark inside, bright outside, like the ring's inner edge) for the other two, whose
-  outer edges then lay on the wall and fired nothing. The tracker now drops a pose whose outer
-  edge stays silent for 30 updates while the motion sweeps it; that lock fails its
-  verification and the next one is right. (Dropped after 10 updates, `robust`'s slide became a
-  loss and a 190 ms relock: 68% read.) Until commit 3fb1327 the receiver's outputs depended on
-  where the stream was cut into chunks (it tried detection at each chunk's end and cut its
-  triage segments from each chunk's first event), so replays of saved events in 10 ms cuts
-  diverged from the simulator's own chunks; now any cutting gives the same outputs. Each clip is
-  still one run in which a few events decide where a detection locks: until commit 2506078 the
-  simulator put about ten events per clip out of order at chunk edges, and a replay of the
-  0.5 px/ms `paper` clip's events in 10 ms cuts, which moves those few, locked right at once and
-  lost nothing. Until commit
-  f958734 a frame under fast motion was read from each pixel's latest burst, which motion had
-  often restarted after the display's switch: a 10 ms replay of the `paper` clip read 33 of 59
-  frames (50 after; 36 and 55 through the true pose). Before commit b8d5afa the tracker's edges
-  stood still between pose updates, so the pose trailed the events by about 0.2 ms and at the
-  flow peaks slid off the ring: 23-27% read at 6 px/ms, 73-79% of the clip tracked, five or six
-  losses. Before ef463e9 detection searched image flows only up to 2.5 px/ms: 13-15%.
+  synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often here
+  than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its throughput
+  above ours at N = 16; the paper found the opposite. At the `standard` scale `robust` receives
+  95-97% of its data frames at every flow from 0.5 to 6 px/ms (its Reed-Solomon code and CRC pass),
+  as AprilTag and ArUco without blank frames decode 96-100% of their codes; the frames it misses are
+  the few shown before its first lock, 0.08-0.12 s into each clip. Read bit-exact before FEC, our
+  frames come out at 90-97% up to 4 px/ms and at 6 px/ms 80% (`robust`) and 78% (`paper`), whose
+  frames carry no check of their own and so count only bit-exact: the `paper` profile falls short of
+  the tags at 6 px/ms. The table's last column says why. At every flow the receiver tracks 94-98% of
+  the clip without a loss; the reads it gets wrong have a few wrong bits, which `robust`'s FEC
+  corrects (2.4 kbit/s at 6 px/ms) and which stall the `paper` profile (no frame header: one lost
+  frame stops it until the transmitter loops round; 1.7 kbit/s at 6 px/ms, 6.6 below). Since commit
+  cfcda17 verifies a lock under motion on the frame after its burst's, the 0.5 px/ms `paper` clip
+  locks once at 0.08 s and keeps it (97% read; 90% before, when its first two locks read the 'L' no
+  better upright than turned and were dropped within 0.2 s). At the 6 px/ms clips' flow peak (9-12
+  px/ms) the pose can slide about 9 cm off the ring: in earlier runs one profile or the other lost
+  its lock there once; in this run neither did (1% of the `paper` clip more than 5 cm off). Until
+  commit e4f73ea the `paper` clip then locked again on a wrong pose and tracked it for over a second
+  (28% read, 55% of the clip more than 5 cm off): 13% too near, it fit the ring's two near sides and
+  took the screen's border (dark inside, bright outside, like the ring's inner edge) for the other
+  two, whose outer edges then lay on the wall and fired nothing. The tracker now drops a pose whose
+  outer edge stays silent for 30 updates while the motion sweeps it; that lock fails its
+  verification and the next one is right. (Dropped after 10 updates, `robust`'s slide became a loss
+  and a 190 ms relock: 68% read.) Until commit 3fb1327 the receiver's outputs depended on where the
+  stream was cut into chunks (it tried detection at each chunk's end and cut its triage segments
+  from each chunk's first event), so replays of saved events in 10 ms cuts diverged from the
+  simulator's own chunks; now any cutting gives the same outputs. Each clip is still one run in
+  which a few events decide where a detection locks: until commit 2506078 the simulator put about
+  ten events per clip out of order at chunk edges, and a replay of the 0.5 px/ms `paper` clip's
+  events in 10 ms cuts, which moves those few, locked right at once and lost nothing. Until commit
+  f958734 a frame under fast motion was read from each pixel's latest burst, which motion had often
+  restarted after the display's switch: a 10 ms replay of the `paper` clip read 33 of 59 frames (50
+  after; 36 and 55 through the true pose). Before commit b8d5afa the tracker's edges stood still
+  between pose updates, so the pose trailed the events by about 0.2 ms and at the flow peaks slid
+  off the ring: 23-27% read at 6 px/ms, 73-79% of the clip tracked, five or six losses. Before
+  ef463e9 detection searched image flows only up to 2.5 px/ms: 13-15%.
 - The simulator has no motion-capture noise, calibration error or clock offset, so our ATE is
   below the paper's; it shows the tracker, not what a real set-up would measure.
 """
