@@ -45,12 +45,14 @@ def _stream(rng: np.random.Generator, n: int) -> np.ndarray:
     return make_events(t, x, y, rng.choice([-1, 1], n))
 
 
-def _reference_bursts(events: np.ndarray, polarities: int, mark: int = 0) -> set[tuple]:
+def _reference_bursts(
+    events: np.ndarray, polarities: int, marks: tuple[int, ...] = (0,)
+) -> set[tuple]:
     """(x, y, polarity index, start) of each pixel's latest burst and of its first burst from
-    ``mark`` on, event by event: a burst ends after a gap of ``GAP_US`` or at an event of the
-    other polarity."""
+    each of the ``marks`` on, event by event: a burst ends after a gap of ``GAP_US`` or at an
+    event of the other polarity."""
     latest: dict[tuple, int] = {}
-    first: dict[tuple, int] = {}
+    firsts: list[dict[tuple, int]] = [{} for _ in marks]
     last: dict[tuple, int] = {}
     for t, x, y, p in zip(events["t"], events["x"], events["y"], events["p"], strict=True):
         key = (int(x), int(y), 0 if p > 0 else 1)
@@ -59,10 +61,11 @@ def _reference_bursts(events: np.ndarray, polarities: int, mark: int = 0) -> set
             continue
         if key not in last or t - last[key] > GAP_US:
             latest[key] = int(t)
-            if t >= mark and key not in first:
-                first[key] = int(t)
+            for mark, first in zip(marks, firsts, strict=True):
+                if t >= mark and key not in first:
+                    first[key] = int(t)
         last[key] = int(t)
-    return {(*key, t) for kept in (latest, first) for key, t in kept.items()}
+    return {(*key, t) for kept in (latest, *firsts) for key, t in kept.items()}
 
 
 def _on_grid(bursts: set[tuple], stride: int) -> set[tuple]:
@@ -83,20 +86,23 @@ def _as_tuples(bursts) -> list[tuple]:
     st.integers(1, 3),
     st.sampled_from([1, 2, 4]),
     st.integers(0, 2000),
+    st.integers(0, 2000),
 )
-def test_triage_keeps_each_pixels_latest_and_first_marked_burst_start(
-    seed, n, both, pieces, stride, mark
+def test_triage_keeps_each_pixels_latest_and_first_marked_burst_starts(
+    seed, n, both, pieces, stride, mark, later
 ):
     """Of the pixels on every ``stride``-th row and column (the others are not kept); a burst
-    that is both the latest and the first from the mark on is read out once."""
+    that is the latest and the first from a mark on, or the first from both, is read out
+    once."""
+    marks = (mark, mark + later)
     rng = np.random.default_rng(seed)
     events = _stream(rng, n)
     triage = EventTriage(DISTORTED.undistort_table, GAP_US, both)
     triage.reset(0, stride)
-    triage.mark_us = mark
+    triage.marks_us = marks
     for part in np.array_split(events, pieces):  # chunking must not matter
         triage(part)
-    expected = _on_grid(_reference_bursts(events, 2 if both else 1, mark), stride)
+    expected = _on_grid(_reference_bursts(events, 2 if both else 1, marks), stride)
     got = _as_tuples(triage.bursts(-(1 << 20), 1 << 20, (0, WIDTH, 0, HEIGHT)))
     assert len(got) == len(set(got)) and set(got) == expected
 
@@ -131,12 +137,12 @@ def test_bursts_are_those_that_began_in_the_window_inside_the_box(seed, t0, span
     events = _stream(rng, 300)
     triage = EventTriage(DISTORTED.undistort_table, GAP_US, True)
     triage.reset(0, stride)
-    triage.mark_us = t0
+    triage.marks_us = (t0, t0 + span // 2)
     triage(events)
     box = (1, 4, 1, 4)  # odd edges: the stride's grid starts inside the box
     expected = {
         (x, y, d, t)
-        for x, y, d, t in _on_grid(_reference_bursts(events, 2, t0), stride)
+        for x, y, d, t in _on_grid(_reference_bursts(events, 2, (t0, t0 + span // 2)), stride)
         if t0 <= t < t0 + span and box[0] <= x < box[1] and box[2] <= y < box[3]
     }
     bursts = triage.bursts(t0, t0 + span, box)

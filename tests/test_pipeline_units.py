@@ -14,7 +14,7 @@ from receiver.camera import CameraModel
 from receiver.events import make_events
 from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from receiver.pipeline.config import DecoderParams, FilterParams, ReceiverConfig
-from receiver.pipeline.decoder import CellReader, FrameClock, read_stride
+from receiver.pipeline.decoder import CellReader, FrameClock, cell_side_px, read_stride
 from receiver.pipeline.detector import (
     MarkerNotFound,
     blink_phase,
@@ -149,22 +149,22 @@ def _triage(both: bool = False) -> EventTriage:
 
 def test_triage_keeps_when_each_pixel_burst_began():
     triage = _triage()
-    triage.mark_us = 50  # a frame's window begins
-    # pixel (3, 4): a burst at 100..300, another at 5000; pixel (5, 6): ON at 400, OFF at 5100
+    triage.marks_us = (50, 2000)  # a frame's window begins, and a time within it
+    # pixel (3, 4): bursts at 100..300, 3000 and 5000; pixel (5, 6): ON at 400, OFF at 5100
     triage(
         make_events(
-            [100, 200, 300, 400, 5000, 5100],
-            [3, 3, 3, 5, 3, 5],
-            [4, 4, 4, 6, 4, 6],
-            [1, 1, 1, 1, 1, -1],
+            [100, 200, 300, 400, 3000, 5000, 5100],
+            [3, 3, 3, 5, 3, 3, 5],
+            [4, 4, 4, 6, 4, 4, 6],
+            [1, 1, 1, 1, 1, 1, -1],
         )
     )
-    # (3, 4) began again at 5000, but its first burst from the mark on is kept too; (5, 6)
+    # (3, 4) began again at 5000, but its first bursts from each mark on are kept too; (5, 6)
     # went off at 5100, which an ON-only surface does not keep
     bursts = triage.bursts(0, 1000, (0, 32, 0, 24))
     assert bursts["t"].tolist() == [100, 400] and bursts["x"].tolist() == [3, 5]
     later = triage.bursts(1000, 6000, (0, 32, 0, 24))
-    assert later["t"].tolist() == [5000] and later["p"].tolist() == [1]
+    assert later["t"].tolist() == [3000, 5000] and later["p"].tolist() == [1, 1]
     assert len(triage.bursts(0, 6000, (0, 3, 0, 24))) == 0  # outside the box
     both = _triage(both=True)
     both(make_events([100, 5100], [5, 5], [6, 6], [1, -1]))
@@ -250,8 +250,9 @@ def test_large_cells_are_read_with_a_pixel_stride(px_per_cell, want, stride):
     distance = K[0, 0] * geo.cell_size_m(size) / px_per_cell
     facing = make_pose(np.eye(3), np.array([-centre[0], -centre[1], distance]))
     assert read_stride(config, facing) == stride
+    assert cell_side_px(config, facing) == pytest.approx(px_per_cell)
     behind = make_pose(np.eye(3), np.array([-centre[0], -centre[1], -distance]))
-    assert read_stride(config, behind) == 1
+    assert read_stride(config, behind) == 1 and cell_side_px(config, behind) == 0
 
 
 def test_cells_read_against_the_locator_ring_and_score_its_contrast():

@@ -325,16 +325,22 @@ def _two_means(values: np.ndarray, dark: float, bright: float) -> float:
     return 0.5 * (dark + bright)
 
 
+def cell_side_px(config: ReceiverConfig, T_cam_world: np.ndarray) -> float:
+    """The shortest side of a cell seen from this pose, in pixels (0 if it does not project)."""
+    geo = config.geometry
+    corners = project_ideal(T_cam_world, config.camera.K, geo.locator_corners(config.marker_size_m))
+    if not np.all(np.isfinite(corners)):
+        return 0.0
+    return float(np.hypot(*(corners - np.roll(corners, 1, axis=0)).T).min() / geo.locator_side)
+
+
 def read_stride(config: ReceiverConfig, T_cam_world: np.ndarray) -> int:
     """The pixel stride (``EventTriage.reset``) that cells seen from this pose can be read with:
     the largest power of two leaving ``decoder.read_px_per_cell`` pixels per cell side."""
-    want, geo = config.decoder.read_px_per_cell, config.geometry
-    if want is None:
+    want = config.decoder.read_px_per_cell
+    side = cell_side_px(config, T_cam_world)
+    if want is None or not side:
         return 1
-    corners = project_ideal(T_cam_world, config.camera.K, geo.locator_corners(config.marker_size_m))
-    if not np.all(np.isfinite(corners)):
-        return 1
-    side = np.hypot(*(corners - np.roll(corners, 1, axis=0)).T).min() / geo.locator_side
     stride = 1
     while side / (2 * stride) >= want:
         stride *= 2

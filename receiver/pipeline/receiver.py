@@ -44,7 +44,7 @@ from occ.profiles import get_profile
 from occ.stream import ReceivedMessage, StreamDecoder
 from receiver.pipeline.buffer import EventBuffer, to_columns
 from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.decoder import CellReader, FrameRead, read_stride
+from receiver.pipeline.decoder import CellReader, FrameRead, cell_side_px, read_stride
 from receiver.pipeline.detector import Detection, MarkerNotFound, detect
 from receiver.pipeline.filters import EventFilter
 from receiver.pipeline.pose import interpolate_pose, project_ideal
@@ -135,6 +135,9 @@ class Receiver:
         self._missed = 0
         self._burst_frame_read_only = False
         """Frame 0 of a lock under motion (the detected burst's) only times the frame clock."""
+        self._late_mark = False
+        """Whether frames keep each pixel's first burst after their window's middle too
+        (``DecoderParams.late_mark_px_per_cell``)."""
         self._probation: int | None = None
         """Frames left for a lock on probation to pass a frame check (``_failed_probation``)."""
         self._turn_leads: deque[float] = deque(maxlen=config.decoder.turn_frames)
@@ -244,6 +247,8 @@ class Receiver:
                 if self._tracker.capture(recent["xu"], recent["yu"], now):
                     T = self._tracker.T_cam_world
         stride = read_stride(self.config, T)
+        late = self.config.decoder.late_mark_px_per_cell
+        self._late_mark = late is not None and cell_side_px(self.config, T) >= late
         self._reader = CellReader(self.config, found.burst_us, stride)
         self._triage.reset(now, stride)
         # Frames inside the detection window are still buffered: read them too. Under motion the
@@ -341,7 +346,7 @@ class Receiver:
             self._cursor = end
             if not parts:
                 continue
-            self._triage.mark_us = start
+            self._triage.marks_us = (start, (start + frame_end) // 2 if self._late_mark else start)
             with self._cpu("triage"):
                 if track:
                     self._select_near_edges()

@@ -3,10 +3,17 @@
 Neither consumer needs every event. The decoder reads each pixel once per frame (the union of
 its events, as the paper ORs its samples), so it needs only *when each pixel's bursts of each
 polarity began*: a per-pixel time surface of the latest burst's start and of the first one's
-since the current frame's window opened (``EventTriage.mark_us``). The tracker needs only the
+since the current frame's window opened (``EventTriage.marks_us``). The tracker needs only the
 events near the ring's projected edges. Both come out of one pass over the raw chunk, which
 costs a few memory accesses per event; everything after it works per pixel or on the few
 selected events.
+
+A frame's scan-out takes most of a refresh, and at 6 px/ms the images of the rows already
+switched sweep over the pixels of the rows still to come: a bottom row's pixel often fires for a
+neighbour before its own switch, and again after it. So the first burst is kept from two times
+on (``marks_us``): the frame window's start, for the rows that switch early, and a later one
+for the rest, where cells are large enough (``DecoderParams.late_mark_px_per_cell`` says
+what it changed).
 
 A burst is a run of same-polarity events with no gap longer than ``gap_us`` and no event of the
 other polarity: a cell switching fires its pixels several times within the display's response,
@@ -43,16 +50,20 @@ _REBASE_US = 1 << 29
 surface is read at random for every event); the epoch moves on before they could overflow."""
 
 
+_SLOTS = 4
+"""Times per pixel and polarity: the latest burst's start, its last event, and the first
+burst's start from each of the two marks on (16 bytes: an entry never straddles a cache line)."""
+
 _BLOCK = 1024
 """Events whose on-grid ones are gathered at a time (their records stay in the L1 cache)."""
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _burst(surface, e, epoch, gap_us, shift, mark):
+def _burst(surface, e, epoch, gap_us, shift, mark, mark2):
     """Note event ``e`` in its pixel's burst times (ON only when the surface has one polarity):
-    the latest burst's start and last event, and the first burst's start from ``mark`` on. An
-    event of the other polarity ends a burst: a moving edge darkens and relights a pixel well
-    within ``gap_us``."""
+    the latest burst's start and last event, and the first burst's start from ``mark`` on and
+    from ``mark2`` on. An event of the other polarity ends a burst: a moving edge darkens and
+    relights a pixel well within ``gap_us``."""
     d = 0 if e.p > 0 else 1
     sy, sx = e.y >> shift, e.x >> shift
     if 1 - d < surface.shape[2]:
@@ -63,13 +74,16 @@ def _burst(surface, e, epoch, gap_us, shift, mark):
             surface[sy, sx, d, 0] = ti
             if surface[sy, sx, d, 2] < mark:
                 surface[sy, sx, d, 2] = ti
+            if surface[sy, sx, d, 3] < mark2:
+                surface[sy, sx, d, 3] = ti
         surface[sy, sx, d, 1] = ti
 
 
 @numba.njit(cache=True, nogil=True)
-def _triage(events, surface, epoch, gap_us, tiles, shift, every, first, mark):
+def _triage(events, surface, epoch, gap_us, tiles, shift, every, first, mark, mark2):
     """Update ``surface[y >> shift, x >> shift, polarity] = (latest burst's start, its last
-    event, first burst's start from ``mark`` on)`` from the pixels on the stride's grid; return
+    event, first burst's start from ``mark`` on, from ``mark2`` on)`` from the pixels on the
+    stride's grid; return
     the indices of the events on the marked ``tiles``, of every ``every``-th event from index
     ``first`` on (``first < every``: a call continuing another's thinning).
 
@@ -85,7 +99,7 @@ def _triage(events, surface, epoch, gap_us, tiles, shift, every, first, mark):
         countdown = first + 1
         for i in range(n):
             e = events[i]
-            _burst(surface, e, epoch, gap_us, shift, mark)
+            _burst(surface, e, epoch, gap_us, shift, mark, mark2)
             countdown -= 1
             if countdown == 0:
                 countdown = every
@@ -101,12 +115,22 @@ def _triage(events, surface, epoch, gap_us, tiles, shift, every, first, mark):
             on_grid[g] = i
             g += ((e.x | e.y) & off_grid) == 0
         for j in range(g):
-            _burst(surface, events[on_grid[j]], epoch, gap_us, shift, mark)
+            _burst(surface, events[on_grid[j]], epoch, gap_us, shift, mark, mark2)
         for i in range(b0 + (first - b0) % every, b1, every):
             e = events[i]
             selected[k] = i
             k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
     return selected[:k]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _new(surface, gy, gx, d, j, ts):
+    """Whether slot ``j``'s burst start ``ts`` is not one of the slots read before it (2, 3, 0)."""
+    if j == 2:
+        return True
+    if ts == surface[gy, gx, d, 2]:
+        return False
+    return j == 3 or ts != surface[gy, gx, d, 3]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -118,7 +142,7 @@ def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, shift):
     stride = 1 << shift
     gy0, gy1 = (y0 + stride - 1) >> shift, (y1 + stride - 1) >> shift
     gx0, gx1 = (x0 + stride - 1) >> shift, (x1 + stride - 1) >> shift
-    size = max(gy1 - gy0, 0) * max(gx1 - gx0, 0) * polarities * 2
+    size = max(gy1 - gy0, 0) * max(gx1 - gx0, 0) * polarities * 3
     t = np.empty(size, np.int64)
     x, y = np.empty(size, np.uint16), np.empty(size, np.uint16)
     xu, yu = np.empty(size, np.float32), np.empty(size, np.float32)
@@ -129,9 +153,9 @@ def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, shift):
         for gx in range(gx0, gx1):
             xx = gx << shift
             for d in range(polarities):
-                for j in (2, 0):  # the first burst from the mark on, then the latest
+                for j in (2, 3, 0):  # the first bursts from the marks on, then the latest
                     ts = surface[gy, gx, d, j]
-                    if t0 <= ts < t1 and (j == 2 or ts != surface[gy, gx, d, 2]):
+                    if t0 <= ts < t1 and _new(surface, gy, gx, d, j, ts):
                         t[k], x[k], y[k] = ts + epoch, xx, yy
                         xu[k], yu[k] = table[yy, xx, 0], table[yy, xx, 1]
                         p[k] = 1 - 2 * d
@@ -181,7 +205,7 @@ class EventTriage:
         self._table = np.ascontiguousarray(undistort_table, np.float32)
         height, width = self._table.shape[:2]
         self._polarities = 2 if both_polarities else 1
-        self.surface = np.full((height, width, self._polarities, 3), _NEVER, np.int32)
+        self.surface = np.full((height, width, self._polarities, _SLOTS), _NEVER, np.int32)
         self.stride = 1
         """The surface holds the pixels on every ``stride``-th row and column (``reset``)."""
         self._shift = 0
@@ -189,11 +213,12 @@ class EventTriage:
         self._near_share = 1.0
         """Share of the events that lay near the edges in the latest call."""
         self.epoch_us = epoch_us
-        self.mark_us = epoch_us
-        """Each pixel's first burst from this time on is kept as well as its latest: set it to
-        the start of a frame's window before its events arrive, and the frame sees the bursts
-        of the display's switch even where motion has started newer ones since (a pixel's
-        latest burst alone keeps only the last time an edge's image relit it)."""
+        self.marks_us = (epoch_us, epoch_us)
+        """Each pixel's first burst from each of these times on is kept as well as its latest:
+        set them to the start of a frame's window and to a time within it before its events
+        arrive, and the frame sees the bursts of the display's switch even where motion has
+        started newer ones since (a pixel's latest burst alone keeps only the last time an
+        edge's image relit it)."""
         self.gap_us = int(gap_us)
         self._tiles = np.zeros((-(-height // TILE), -(-width // TILE)), np.bool_)
         self._edges: np.ndarray | None = None
@@ -210,12 +235,13 @@ class EventTriage:
         if stride < 1 or stride & (stride - 1):
             raise ValueError(f"triage stride must be a power of two, got {stride}")
         height, width = self._table.shape[:2]
-        shape = (-(-height // stride), -(-width // stride), self._polarities, 3)
+        shape = (-(-height // stride), -(-width // stride), self._polarities, _SLOTS)
         if self.surface.shape != shape:
             self.surface = np.empty(shape, np.int32)
         self.surface.fill(_NEVER)
         self.stride, self._shift = stride, stride.bit_length() - 1
-        self.epoch_us = self.mark_us = epoch_us
+        self.epoch_us = epoch_us
+        self.marks_us = (epoch_us, epoch_us)
         self._near_share = 1.0
         self._tiles[:] = False
         self._edges = None
@@ -239,12 +265,12 @@ class EventTriage:
         # edges last time: at 140 M events a second the tracker keeps one near event in ten.
         every = max(-int(-n * self._near_share // most), 1)
         surface, epoch, tiles = self.surface, self.epoch_us, self._tiles
-        mark = min(max(self.mark_us - epoch, _NEVER), 1 << 30)
+        marks = [min(max(m - epoch, _NEVER), 1 << 30) for m in self.marks_us]
         near, seen = [], 0
         for p in parts:
             first = -seen % every
             near.append(
-                _triage(p, surface, epoch, self.gap_us, tiles, self._shift, every, first, mark)
+                _triage(p, surface, epoch, self.gap_us, tiles, self._shift, every, first, *marks)
             )
             seen += len(p)
         found = sum(len(i) for i in near)
@@ -267,8 +293,8 @@ class EventTriage:
 
     def bursts(self, t0: int, t1: int, box: tuple[int, int, int, int]) -> EventColumns:
         """The pixel bursts that began in ``[t0, t1)`` inside ``box`` = (x0, x1, y0, y1): up to
-        two entries (the first from ``mark_us`` on and the latest) per pixel on the stride's grid
-        and polarity, with the burst's start as its time."""
+        three entries (the first from each of ``marks_us`` on and the latest) per pixel on the
+        stride's grid and polarity, with the burst's start as its time."""
         e = self.epoch_us
         lo, hi = max(t0 - e, _NEVER + 1), min(t1 - e, (1 << 31) - 1)
         return EventColumns(
