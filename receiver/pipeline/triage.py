@@ -83,9 +83,9 @@ def _burst(surface, e, epoch, gap_us, shift, mark, mark2):
 def _triage(events, surface, epoch, gap_us, tiles, shift, every, first, mark, mark2):
     """Update ``surface[y >> shift, x >> shift, polarity] = (latest burst's start, its last
     event, first burst's start from ``mark`` on, from ``mark2`` on)`` from the pixels on the
-    stride's grid; return
-    the indices of the events on the marked ``tiles``, of every ``every``-th event from index
-    ``first`` on (``first < every``: a call continuing another's thinning).
+    stride's grid; return the indices of the events on the marked ``tiles``, of every
+    ``every``-th event from index ``first`` on (``first < every``: a call continuing another's
+    thinning).
 
     ``events`` is the structured chunk itself: numba reads each record's fields in one go, which
     runs a third faster than four strided field views. With a stride, whether an event lies on
