@@ -98,36 +98,39 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   95-97% of its data frames at every flow from 0.5 to 6 px/ms (its Reed-Solomon code and CRC pass),
   as AprilTag and ArUco without blank frames decode 96-100% of their codes; the frames it misses are
   the few shown before its first lock, 0.08-0.12 s into each clip. Read bit-exact before FEC, our
-  frames come out at 90-97% up to 4 px/ms and at 6 px/ms 80% (`robust`) and 78% (`paper`), whose
-  frames carry no check of their own and so count only bit-exact: the `paper` profile falls short of
-  the tags at 6 px/ms. The table's last column says why. At every flow the receiver tracks 94-98% of
-  the clip without a loss; the reads it gets wrong have a few wrong bits, which `robust`'s FEC
-  corrects (2.4 kbit/s at 6 px/ms) and which stall the `paper` profile (no frame header: one lost
-  frame stops it until the transmitter loops round; 1.7 kbit/s at 6 px/ms, 6.6 below). Since commit
+  frames come out at 93-97% at every flow (6 px/ms: 93% `robust`, 92% `paper`, whose frames carry no
+  check of their own and so count only bit-exact: a few points short of the tags there). The table's
+  last column says why. At every flow the receiver tracks 94-98% of the clip without a loss; the
+  reads it gets wrong have a few wrong bits, which `robust`'s FEC corrects and which stall the
+  `paper` profile (no frame header: one lost frame stops it until the transmitter loops round).
+  Until commit fc251ea a frame's bottom rows under fast motion were read from each pixel's first
+  burst since the frame's window opened, which was often a burst for a neighbouring row whose image
+  swept over it before its own row's switch: 80% (`robust`) and 78% (`paper`) of the 6 px/ms frames
+  read bit-exact, and the `paper` message completed only at 1.7 kbit/s there (6.6 now). Since commit
   cfcda17 verifies a lock under motion on the frame after its burst's, the 0.5 px/ms `paper` clip
   locks once at 0.08 s and keeps it (97% read; 90% before, when its first two locks read the 'L' no
   better upright than turned and were dropped within 0.2 s). At the 6 px/ms clips' flow peak (9-12
   px/ms) the pose can slide about 9 cm off the ring: in earlier runs one profile or the other lost
-  its lock there once; in this run neither did (1% of the `paper` clip more than 5 cm off). Until
-  commit e4f73ea the `paper` clip then locked again on a wrong pose and tracked it for over a second
-  (28% read, 55% of the clip more than 5 cm off): 13% too near, it fit the ring's two near sides and
-  took the screen's border (dark inside, bright outside, like the ring's inner edge) for the other
-  two, whose outer edges then lay on the wall and fired nothing. The tracker now drops a pose whose
-  outer edge stays silent for 30 updates while the motion sweeps it; that lock fails its
-  verification and the next one is right. (Dropped after 10 updates, `robust`'s slide became a loss
-  and a 190 ms relock: 68% read.) Until commit 3fb1327 the receiver's outputs depended on where the
-  stream was cut into chunks (it tried detection at each chunk's end and cut its triage segments
-  from each chunk's first event), so replays of saved events in 10 ms cuts diverged from the
-  simulator's own chunks; now any cutting gives the same outputs. Each clip is still one run in
-  which a few events decide where a detection locks: until commit 2506078 the simulator put about
-  ten events per clip out of order at chunk edges, and a replay of the 0.5 px/ms `paper` clip's
-  events in 10 ms cuts, which moves those few, locked right at once and lost nothing. Until commit
-  f958734 a frame under fast motion was read from each pixel's latest burst, which motion had often
-  restarted after the display's switch: a 10 ms replay of the `paper` clip read 33 of 59 frames (50
-  after; 36 and 55 through the true pose). Before commit b8d5afa the tracker's edges stood still
-  between pose updates, so the pose trailed the events by about 0.2 ms and at the flow peaks slid
-  off the ring: 23-27% read at 6 px/ms, 73-79% of the clip tracked, five or six losses. Before
-  ef463e9 detection searched image flows only up to 2.5 px/ms: 13-15%.
+  its lock there once; in this run neither did, nor tracked a pose more than 5 cm off. Until commit
+  e4f73ea the `paper` clip then locked again on a wrong pose and tracked it for over a second (28%
+  read, 55% of the clip more than 5 cm off): 13% too near, it fit the ring's two near sides and took
+  the screen's border (dark inside, bright outside, like the ring's inner edge) for the other two,
+  whose outer edges then lay on the wall and fired nothing. The tracker now drops a pose whose outer
+  edge stays silent for 30 updates while the motion sweeps it; that lock fails its verification and
+  the next one is right. (Dropped after 10 updates, `robust`'s slide became a loss and a 190 ms
+  relock: 68% read.) Until commit 3fb1327 the receiver's outputs depended on where the stream was
+  cut into chunks (it tried detection at each chunk's end and cut its triage segments from each
+  chunk's first event), so replays of saved events in 10 ms cuts diverged from the simulator's own
+  chunks; now any cutting gives the same outputs. Each clip is still one run in which a few events
+  decide where a detection locks: until commit 2506078 the simulator put about ten events per clip
+  out of order at chunk edges, and a replay of the 0.5 px/ms `paper` clip's events in 10 ms cuts,
+  which moves those few, locked right at once and lost nothing. Until commit f958734 a frame under
+  fast motion was read from each pixel's latest burst, which motion had often restarted after the
+  display's switch: a 10 ms replay of the `paper` clip read 33 of 59 frames (50 after; 36 and 55
+  through the true pose). Before commit b8d5afa the tracker's edges stood still between pose
+  updates, so the pose trailed the events by about 0.2 ms and at the flow peaks slid off the ring:
+  23-27% read at 6 px/ms, 73-79% of the clip tracked, five or six losses. Before ef463e9 detection
+  searched image flows only up to 2.5 px/ms: 13-15%.
 - The simulator has no motion-capture noise, calibration error or clock offset, so our ATE is
   below the paper's; it shows the tracker, not what a real set-up would measure.
 """
