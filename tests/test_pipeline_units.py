@@ -239,7 +239,8 @@ def test_read_window_narrows_as_soon_as_one_frame_timed_the_clock(profile):
 
 
 @pytest.mark.parametrize(
-    ("px_per_cell", "want", "stride"), [(7, 8.0, 1), (20, 8.0, 2), (40, 8.0, 4), (40, None, 1)]
+    ("px_per_cell", "want", "stride"),
+    [(7, 8.0, 1), (20, 8.0, 2), (30, 8.0, 3), (40, 8.0, 5), (40, None, 1)],
 )
 def test_large_cells_are_read_with_a_pixel_stride(px_per_cell, want, stride):
     config = ReceiverConfig(

@@ -336,15 +336,12 @@ def cell_side_px(config: ReceiverConfig, T_cam_world: np.ndarray) -> float:
 
 def read_stride(config: ReceiverConfig, T_cam_world: np.ndarray) -> int:
     """The pixel stride (``EventTriage.reset``) that cells seen from this pose can be read with:
-    the largest power of two leaving ``decoder.read_px_per_cell`` pixels per cell side."""
+    the largest leaving ``decoder.read_px_per_cell`` pixels per cell side."""
     want = config.decoder.read_px_per_cell
     side = cell_side_px(config, T_cam_world)
     if want is None or not side:
         return 1
-    stride = 1
-    while side / (2 * stride) >= want:
-        stride *= 2
-    return stride
+    return max(int(side // want), 1)
 
 
 class CellReader:

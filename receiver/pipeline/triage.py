@@ -54,36 +54,37 @@ _SLOTS = 4
 """Times per pixel and polarity: the latest burst's start, its last event, and the first
 burst's start from each of the two marks on (16 bytes: an entry never straddles a cache line)."""
 
+_OFF_GRID = -(1 << 30)
 _BLOCK = 1024
 """Events whose on-grid ones are gathered at a time (their records stay in the L1 cache)."""
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _burst(surface, e, epoch, gap_us, shift, mark, mark2):
-    """Note event ``e`` in its pixel's burst times (ON only when the surface has one polarity):
-    the latest burst's start and last event, and the first burst's start from ``mark`` on and
-    from ``mark2`` on. An event of the other polarity ends a burst: a moving edge darkens and
-    relights a pixel well within ``gap_us``."""
+def _burst(pixels, e, at, epoch, gap_us, mark, mark2):
+    """Note event ``e`` in the burst times of its pixel, ``pixels[at]`` (ON only when the
+    surface has one polarity): the latest burst's start and last event, and the first burst's
+    start from ``mark`` on and from ``mark2`` on. An event of the other polarity ends a burst: a
+    moving edge darkens and relights a pixel well within ``gap_us``."""
     d = 0 if e.p > 0 else 1
-    sy, sx = e.y >> shift, e.x >> shift
-    if 1 - d < surface.shape[2]:
-        surface[sy, sx, 1 - d, 1] = _NEVER
-    if d < surface.shape[2]:
+    if 1 - d < pixels.shape[1]:
+        pixels[at, 1 - d, 1] = _NEVER
+    if d < pixels.shape[1]:
         ti = np.int32(e.t - epoch)
-        if ti - surface[sy, sx, d, 1] > gap_us:
-            surface[sy, sx, d, 0] = ti
-            if surface[sy, sx, d, 2] < mark:
-                surface[sy, sx, d, 2] = ti
-            if surface[sy, sx, d, 3] < mark2:
-                surface[sy, sx, d, 3] = ti
-        surface[sy, sx, d, 1] = ti
+        if ti - pixels[at, d, 1] > gap_us:
+            pixels[at, d, 0] = ti
+            if pixels[at, d, 2] < mark:
+                pixels[at, d, 2] = ti
+            if pixels[at, d, 3] < mark2:
+                pixels[at, d, 3] = ti
+        pixels[at, d, 1] = ti
 
 
 @numba.njit(cache=True, nogil=True)
-def _triage(events, surface, epoch, gap_us, tiles, shift, every, first, mark, mark2):
-    """Update ``surface[y >> shift, x >> shift, polarity] = (latest burst's start, its last
-    event, first burst's start from ``mark`` on, from ``mark2`` on)`` from the pixels on the
-    stride's grid; return the indices of the events on the marked ``tiles``, of every
+def _triage(events, pixels, epoch, gap_us, tiles, grid_y, grid_x, dense, every, first, mark, mark2):
+    """Update ``pixels[grid_y[y] + grid_x[x], polarity] = (latest burst's start, its last event,
+    first burst's start from ``mark`` on, from ``mark2`` on)`` (the surface's pixels in one
+    row-major axis) from the pixels on the stride's grid (``grid_*`` negative off it; ``dense``:
+    every pixel is on it); return the indices of the events on the marked ``tiles``, of every
     ``every``-th event from index ``first`` on (``first < every``: a call continuing another's
     thinning).
 
@@ -94,28 +95,29 @@ def _triage(events, surface, epoch, gap_us, tiles, shift, every, first, mark, ma
     n = events.shape[0]
     selected = np.empty(-(-n // every), np.int64)  # pages are touched only as far as written
     k = 0
-    off_grid = (1 << shift) - 1
-    if not off_grid:  # every event is on the grid: one pass (the blocks measured slower here)
+    if dense:  # one pass (the blocks measured slower here, and so did the tables)
+        width = grid_x.shape[0]
         countdown = first + 1
         for i in range(n):
             e = events[i]
-            _burst(surface, e, epoch, gap_us, shift, mark, mark2)
+            _burst(pixels, e, np.int64(e.y) * width + e.x, epoch, gap_us, mark, mark2)
             countdown -= 1
             if countdown == 0:
                 countdown = every
                 selected[k] = i
                 k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
         return selected[:k]
-    on_grid = np.empty(_BLOCK, np.int64)
+    on_grid, at = np.empty(_BLOCK, np.int64), np.empty(_BLOCK, np.int32)
     for b0 in range(0, n, _BLOCK):
         b1 = min(b0 + _BLOCK, n)
         g = 0
         for i in range(b0, b1):
             e = events[i]
             on_grid[g] = i
-            g += ((e.x | e.y) & off_grid) == 0
+            at[g] = grid_y[e.y] + grid_x[e.x]
+            g += at[g] >= 0
         for j in range(g):
-            _burst(surface, events[on_grid[j]], epoch, gap_us, shift, mark, mark2)
+            _burst(pixels, events[on_grid[j]], at[j], epoch, gap_us, mark, mark2)
         for i in range(b0 + (first - b0) % every, b1, every):
             e = events[i]
             selected[k] = i
@@ -134,14 +136,13 @@ def _new(surface, gy, gx, d, j, ts):
 
 
 @numba.njit(cache=True, nogil=True)
-def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, shift):
+def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, stride):
     """(t, x, y, p, xu, yu) of the bursts that began in ``[t0, t1)`` (since ``epoch``) on the
     grid's pixels in the box, in one pass (the outputs are sized for every pixel, touched as
     filled)."""
     polarities = surface.shape[2]
-    stride = 1 << shift
-    gy0, gy1 = (y0 + stride - 1) >> shift, (y1 + stride - 1) >> shift
-    gx0, gx1 = (x0 + stride - 1) >> shift, (x1 + stride - 1) >> shift
+    gy0, gy1 = -(-y0 // stride), -(-y1 // stride)
+    gx0, gx1 = -(-x0 // stride), -(-x1 // stride)
     size = max(gy1 - gy0, 0) * max(gx1 - gx0, 0) * polarities * 3
     t = np.empty(size, np.int64)
     x, y = np.empty(size, np.uint16), np.empty(size, np.uint16)
@@ -149,9 +150,9 @@ def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, shift):
     p = np.empty(size, np.int8)
     k = 0
     for gy in range(gy0, gy1):
-        yy = gy << shift
+        yy = gy * stride
         for gx in range(gx0, gx1):
-            xx = gx << shift
+            xx = gx * stride
             for d in range(polarities):
                 for j in (2, 3, 0):  # the first bursts from the marks on, then the latest
                     ts = surface[gy, gx, d, j]
@@ -196,6 +197,17 @@ def _mark_tiles(tiles, table, a, b, reach, margin):
                     tiles[ty, tx] = True
 
 
+def _grid_index(height: int, width: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Tables of the surface's pixel for each raw row and column on the grid of every
+    ``stride``-th (row-major, summed), ``_OFF_GRID`` for the others (so that a sum with either
+    stays negative): two lookups cost less than an integer division per event."""
+    rows = np.full(height, _OFF_GRID, np.int32)
+    cols = np.full(width, _OFF_GRID, np.int32)
+    cols[::stride] = np.arange(len(cols[::stride]), dtype=np.int32)
+    rows[::stride] = np.arange(len(rows[::stride]), dtype=np.int32) * len(cols[::stride])
+    return rows, cols
+
+
 class EventTriage:
     """Per-pixel burst surfaces for the decoder and the near-edge events for the tracker."""
 
@@ -208,8 +220,9 @@ class EventTriage:
         self.surface = np.full((height, width, self._polarities, _SLOTS), _NEVER, np.int32)
         self.stride = 1
         """The surface holds the pixels on every ``stride``-th row and column (``reset``)."""
-        self._shift = 0
-        """log2 of the stride: pixel >> shift is the surface's index."""
+        self._grid = _grid_index(height, width, 1)
+        """The surface's pixel (row-major) of raw pixel (y, x): ``_grid[0][y] + _grid[1][x]``,
+        negative off the grid."""
         self._near_share = 1.0
         """Share of the events that lay near the edges in the latest call."""
         self.epoch_us = epoch_us
@@ -231,15 +244,16 @@ class EventTriage:
 
     def reset(self, epoch_us: int, stride: int = 1) -> None:
         """Forget every burst and the tracked edges (a new lock); keep the bursts of the pixels
-        on every ``stride``-th row and column (a power of two) from now on."""
-        if stride < 1 or stride & (stride - 1):
-            raise ValueError(f"triage stride must be a power of two, got {stride}")
+        on every ``stride``-th row and column from now on."""
+        if stride < 1:
+            raise ValueError(f"triage stride must be a positive integer, got {stride}")
         height, width = self._table.shape[:2]
         shape = (-(-height // stride), -(-width // stride), self._polarities, _SLOTS)
         if self.surface.shape != shape:
             self.surface = np.empty(shape, np.int32)
         self.surface.fill(_NEVER)
-        self.stride, self._shift = stride, stride.bit_length() - 1
+        self.stride = stride
+        self._grid = _grid_index(height, width, stride)
         self.epoch_us = epoch_us
         self.marks_us = (epoch_us, epoch_us)
         self._near_share = 1.0
@@ -264,13 +278,15 @@ class EventTriage:
         # Only every k-th event is looked up in the tiles, k from the share that lay near the
         # edges last time: at 140 M events a second the tracker keeps one near event in ten.
         every = max(-int(-n * self._near_share // most), 1)
-        surface, epoch, tiles = self.surface, self.epoch_us, self._tiles
+        epoch = self.epoch_us
+        pixels = self.surface.reshape(-1, *self.surface.shape[2:])
+        grid = (*self._grid, self.stride == 1)
         marks = [min(max(m - epoch, _NEVER), 1 << 30) for m in self.marks_us]
         near, seen = [], 0
         for p in parts:
             first = -seen % every
             near.append(
-                _triage(p, surface, epoch, self.gap_us, tiles, self._shift, every, first, *marks)
+                _triage(p, pixels, epoch, self.gap_us, self._tiles, *grid, every, first, *marks)
             )
             seen += len(p)
         found = sum(len(i) for i in near)
@@ -298,5 +314,5 @@ class EventTriage:
         e = self.epoch_us
         lo, hi = max(t0 - e, _NEVER + 1), min(t1 - e, (1 << 31) - 1)
         return EventColumns(
-            *_bursts_between(self.surface, e, lo, hi, *box, self._table, self._shift)
+            *_bursts_between(self.surface, e, lo, hi, *box, self._table, self.stride)
         )
