@@ -414,6 +414,15 @@ def test_at_1_px_per_ms_the_first_lock_is_the_right_one():
     assert np.median(run["err"]) <= TRACKED_RMS_M
 
 
+def test_a_camera_drifting_too_slowly_for_a_flow_is_not_locked_on_its_smeared_image():
+    """Seed 3 at 0.25 px/ms: the burst gave no flow, and the still path fitted its quadrilateral
+    to the smeared phase-locked image, 11 cm off, its 'L' leading at 0.33 where a still
+    marker's leads by 1.2 or more (``DetectorParams.min_still_orientation_score``)."""
+    run = _run(0.25, 0.2, seed=3)
+    assert any(c.state == TRACKING for c in run["changes"]), run["stats"].detection_failures
+    assert run["err"].max() <= WRONG_LOCK_M
+
+
 def _turned_detections(monkeypatch, turns: int, oriented: bool) -> None:
     """Every detection whose burst showed the 'L' clearly (the others fail) comes back ``turns``
     quarter turns off (corners rolled, pose solved again), as fast motion made them: the ring

@@ -64,7 +64,12 @@ class DetectorParams:
     """|X_k| / X_0 of the ROI's signed event count; noise gives ~1/sqrt(events), ``fast`` ~0.15."""
     min_orientation_score: float = 0.25
     """Lead of the best rotation's contrast between the inner locator's expected white and black
-    cells over the runner-up's."""
+    cells over the runner-up's, in the motion-compensated burst under motion."""
+    min_still_orientation_score: float = 0.6
+    """The same for the still path's phase-locked image, which shows a still marker sharp: its
+    'L' leads by 1.2-1.3 (346x260 tests, 1280x720 at 10 lux). A camera drifting too slowly for
+    the burst to give a flow (240x180 at 0.25 px/ms) smears that image, and the quadrilateral
+    fitted to it was 11 and 23 cm off on two of five clips, its 'L' leading by 0.33 and 0.25."""
     min_edge_polarity: float = 0.7
     """Under motion, the ring fitted at the burst must fire with the polarities the flow gives
     its edges (``detector.ring_support``) at least this well: +1.0 at the true pose on the

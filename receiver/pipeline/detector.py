@@ -462,7 +462,7 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     quad = quadrilateral(outline(img))
     check_quadrilateral(quad, params)
     corners, score = orient(quad, img, config.geometry)
-    if score < params.min_orientation_score:
+    if score < params.min_still_orientation_score:
         raise MarkerNotFound(
             f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
         )
