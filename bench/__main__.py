@@ -98,7 +98,7 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   95-97% of its data frames at every flow from 0.5 to 6 px/ms (its Reed-Solomon code and CRC pass),
   as AprilTag and ArUco without blank frames decode 96-100% of their codes; the frames it misses are
   the few shown before its first lock, 0.08-0.12 s into each clip. Read bit-exact before FEC, our
-  frames come out at 93-97% at every flow (6 px/ms: 93% `robust`, 92% `paper`, whose frames carry no
+  frames come out at 92-97% at every flow (6 px/ms: 92% for both profiles; `paper`'s frames carry no
   check of their own and so count only bit-exact: a few points short of the tags there). The table's
   last column says why. At every flow the receiver tracks 94-98% of the clip without a loss; the
   reads it gets wrong have a few wrong bits, which `robust`'s FEC corrects and which stall the
