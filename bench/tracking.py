@@ -172,7 +172,11 @@ def main() -> None:
         "lock: no lock during the clip (ATE etc. then have nothing to score). At 0.25 px/ms locks "
         "still start wrong now and then: a ring fitted a ring width off reads the white ring as "
         "the 'L' (seed 1's, from a burst without a clear 'L', 21 cm off, until the fit-ratio "
-        "check dropped it 0.19 s later)."
+        "check dropped it 0.19 s later), and a burst's 'L' read a quarter turn off can pass on "
+        "the frames after it (seed 4's first lock, 6 cm off, until the 'L' check dropped it 70 "
+        "ms later). Until commit 87e035a the still path also locked on the smeared image of a "
+        "camera drifting too slowly for the burst to give a flow (seeds 3 and 4, 10 and 21 cm "
+        "off)."
         "\n\n" + "\n".join(lines)
     )
     summary = [
