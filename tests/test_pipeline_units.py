@@ -280,3 +280,11 @@ def test_fast_truth_is_the_toggles_and_key_refreshes_are_not_scored():
     key = enc.profile.key_every  # the key refresh blanks the payload: toggles but no symbol
     toggles = geo.payload_of(enc.frame(key - 1))
     assert truth.errors(toggles, int((key + 0.5) * 1e6 / 60)) is None
+
+
+@pytest.mark.parametrize(("profile", "expected"), [("robust", 0), ("fast", None)])
+def test_frame_truth_scores_the_streams_first_refresh(profile, expected):
+    """Refresh 0 follows blank frames: ``robust``'s is scored as shown, ``fast``'s is a key
+    refresh (no symbol). It used to be matched to refresh 1, ``fast``'s at half its bits wrong."""
+    truth = FrameTruth(StreamEncoder(bytes(300), profile=profile, cells=16), 60.0)
+    assert truth.errors(truth.sent(0), 8_300) == expected

@@ -37,16 +37,21 @@ class FrameTruth:
     def sent(self, k: int) -> np.ndarray:
         """The bits a receiver reads at refresh ``k``: the payload shown, or for ``fast`` the
         cells that toggled (every refresh, key refreshes included)."""
-        enc = self.encoder
-        shown = enc.geometry.payload_of(enc.frame(k))
-        if enc.profile.data_every == 1:
-            return shown ^ enc.geometry.payload_of(enc.frame(k - 1))
+        shown = self._shown(k)
+        if self.encoder.profile.data_every == 1:
+            return shown ^ self._shown(k - 1)
         return shown
+
+    def _shown(self, k: int) -> np.ndarray:
+        """The payload cells of refresh ``k``; blank before the stream's first, as the screen
+        shows them (``receiver.sim.display``)."""
+        geo = self.encoder.geometry
+        return geo.payload_of(self.encoder.frame(k) if k >= 0 else geo.blank_frame)
 
     def errors(self, bits: np.ndarray, t_us: int) -> int | None:
         """Bit errors of a frame read at ``t_us``, or None if it matches no data refresh."""
         k = self.start_refresh + int(np.floor(t_us * self.refresh_hz / 1e6))
-        ks = list(range(max(1, k - 2), k + 2))
+        ks = list(range(max(0, k - 2), k + 2))
         if self.encoder.profile.data_every == 2:
             ks = [j for j in ks if self.encoder.is_data_frame(j)]
         if not ks:
