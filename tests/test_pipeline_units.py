@@ -250,10 +250,12 @@ def test_large_cells_are_read_with_a_pixel_stride(px_per_cell, want, stride):
     centre = geo.locator_corners(size).mean(axis=0)
     distance = K[0, 0] * geo.cell_size_m(size) / px_per_cell
     facing = make_pose(np.eye(3), np.array([-centre[0], -centre[1], distance]))
-    assert read_stride(config, facing) == stride
+    assert read_stride(config, cell_side_px(config, facing)) == stride
     assert cell_side_px(config, facing) == pytest.approx(px_per_cell)
     behind = make_pose(np.eye(3), np.array([-centre[0], -centre[1], -distance]))
-    assert read_stride(config, behind) == 1 and cell_side_px(config, behind) == 0
+    assert (
+        read_stride(config, cell_side_px(config, behind)) == 1 and cell_side_px(config, behind) == 0
+    )
 
 
 def test_cells_read_against_the_locator_ring_and_score_its_contrast():

@@ -334,14 +334,13 @@ def cell_side_px(config: ReceiverConfig, T_cam_world: np.ndarray) -> float:
     return float(np.hypot(*(corners - np.roll(corners, 1, axis=0)).T).min() / geo.locator_side)
 
 
-def read_stride(config: ReceiverConfig, T_cam_world: np.ndarray) -> int:
-    """The pixel stride (``EventTriage.reset``) that cells seen from this pose can be read with:
-    the largest leaving ``decoder.read_px_per_cell`` pixels per cell side."""
+def read_stride(config: ReceiverConfig, side_px: float) -> int:
+    """The pixel stride (``EventTriage.reset``) that cells ``side_px`` wide (``cell_side_px``)
+    can be read with: the largest leaving ``decoder.read_px_per_cell`` pixels per cell side."""
     want = config.decoder.read_px_per_cell
-    side = cell_side_px(config, T_cam_world)
-    if want is None or not side:
+    if want is None or not side_px:
         return 1
-    return max(int(side // want), 1)
+    return max(int(side_px // want), 1)
 
 
 class CellReader:

@@ -246,9 +246,10 @@ class Receiver:
                 recent = to_columns(recent, self.config.camera.undistort_table)
                 if self._tracker.capture(recent["xu"], recent["yu"], now):
                     T = self._tracker.T_cam_world
-        stride = read_stride(self.config, T)
+        side = cell_side_px(self.config, T)
+        stride = read_stride(self.config, side)
         late = self.config.decoder.late_mark_px_per_cell
-        self._late_mark = late is not None and cell_side_px(self.config, T) >= late
+        self._late_mark = late is not None and side >= late
         self._reader = CellReader(self.config, found.burst_us, stride)
         self._triage.reset(now, stride)
         # Frames inside the detection window are still buffered: read them too. Under motion the
