@@ -164,35 +164,49 @@ def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, stride):
     return t[:k], x[:k], y[:k], p[:k], xu[:k], yu[:k]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _tile_span(lo, hi, pixels, tiles):
+    """The tiles covering pixels ``lo..hi`` (clamped to the sensor, plus a tile, before the
+    integer conversion: a pose far off the view projects to huge coordinates)."""
+    lo, hi = min(max(lo, -TILE), pixels + TILE), min(max(hi, -TILE), pixels + TILE)
+    return range(max(int(np.floor(lo / TILE)), 0), min(int(np.ceil(hi / TILE)) + 1, tiles))
+
+
 @numba.njit(cache=True, nogil=True)
 def _mark_tiles(tiles, table, a, b, reach, margin):
-    """Mark the tiles whose centre (in ideal pixels) lies within ``reach`` of an edge, searching
-    each edge's own box (``margin`` tiles wider, for the distortion between raw and ideal
-    pixels) rather than the whole ring's."""
+    """Mark the tiles whose centre (in ideal pixels) lies within ``reach`` of an edge. Each
+    row of tiles searches only the columns that the edge's stretch within its reach can touch
+    (``margin`` tiles wider, for the distortion between raw and ideal pixels): a long slanted
+    edge's bounding box holds tens of times the tiles near it."""
     tiles[:] = False
     half = TILE // 2
     height, width = table.shape[0], table.shape[1]
     rows, cols = tiles.shape
+    slack = reach + margin * TILE  # raw pixels from an ideal point within reach of the edge
     for e in range(a.shape[0]):
-        # Clamped to the sensor (plus a tile) before the integer conversion: a pose far off
-        # the view projects to huge coordinates.
-        x_lo = min(max(min(a[e, 0], b[e, 0]) - reach, -TILE), width + TILE)
-        x_hi = min(max(max(a[e, 0], b[e, 0]) + reach, -TILE), width + TILE)
-        y_lo = min(max(min(a[e, 1], b[e, 1]) - reach, -TILE), height + TILE)
-        y_hi = min(max(max(a[e, 1], b[e, 1]) + reach, -TILE), height + TILE)
-        tx0, tx1 = max(int(np.floor(x_lo / TILE)) - margin, 0), int(np.ceil(x_hi / TILE))
-        ty0, ty1 = max(int(np.floor(y_lo / TILE)) - margin, 0), int(np.ceil(y_hi / TILE))
-        dx, dy = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+        ax, ay, dx, dy = a[e, 0], a[e, 1], b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
         L2 = dx * dx + dy * dy
-        for ty in range(ty0, min(ty1 + margin + 1, rows)):
-            for tx in range(tx0, min(tx1 + margin + 1, cols)):
+        for ty in _tile_span(min(ay, b[e, 1]) - slack, max(ay, b[e, 1]) + slack, height, rows):
+            cy = min(ty * TILE + half, height - 1)
+            # The part of the edge whose y lies within ``slack`` of the row's centres, and the
+            # columns within ``slack`` of it.
+            s0, s1 = 0.0, 1.0
+            if dy != 0:
+                s0, s1 = (cy - slack - ay) / dy, (cy + slack - ay) / dy
+                s0, s1 = max(min(s0, s1), 0.0), min(max(s0, s1), 1.0)
+            elif abs(cy - ay) > slack:
+                continue
+            if s0 > s1:
+                continue
+            x_lo, x_hi = ax + min(s0 * dx, s1 * dx) - slack, ax + max(s0 * dx, s1 * dx) + slack
+            for tx in _tile_span(x_lo, x_hi, width, cols):
                 if tiles[ty, tx]:
                     continue
-                cy, cx = min(ty * TILE + half, height - 1), min(tx * TILE + half, width - 1)
+                cx = min(tx * TILE + half, width - 1)
                 px, py = table[cy, cx, 0], table[cy, cx, 1]
-                w = ((px - a[e, 0]) * dx + (py - a[e, 1]) * dy) / L2 if L2 > 0 else 0.0
+                w = ((px - ax) * dx + (py - ay) * dy) / L2 if L2 > 0 else 0.0
                 w = min(max(w, 0.0), 1.0)
-                ex, ey = a[e, 0] + w * dx - px, a[e, 1] + w * dy - py
+                ex, ey = ax + w * dx - px, ay + w * dy - py
                 if ex * ex + ey * ey <= reach * reach:
                     tiles[ty, tx] = True
 
