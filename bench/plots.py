@@ -20,48 +20,58 @@ TRACKING_GAP_S = 0.05
 
 
 def streaming(points: list[StreamingPoint], path: Path) -> None:
-    """Box plots of BER and goodput per N, one colour per (profile, refresh rate, lux)."""
-    groups: dict[str, dict[int, list[StreamingPoint]]] = defaultdict(lambda: defaultdict(list))
-    for p in points:
-        groups[f"{p.profile} {p.refresh_hz:g} Hz, {p.lux:g} lx"][p.cells].append(p)
-    cells = sorted({p.cells for p in points})
-    fig, (ax_ber, ax_rate) = plt.subplots(1, 2, figsize=(11, 4.2))
-    width = 0.8 / max(1, len(groups))
+    """Box plots of BER and goodput per N, a row per ambient lux level and a colour per
+    (profile, refresh rate), the same in every row."""
+    labels = sorted({(p.profile, p.refresh_hz) for p in points})
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for g, (label, by_n) in enumerate(sorted(groups.items())):
-        pos = [i + (g - (len(groups) - 1) / 2) * width for i, n in enumerate(cells) if n in by_n]
-        colour = colours[g % len(colours)]
-        style = {
-            "widths": width * 0.9,
-            "patch_artist": True,
-            "boxprops": {"facecolor": colour, "alpha": 0.6},
-            "medianprops": {"color": "black"},
-        }
-        present = [n for n in cells if n in by_n]
-        # Runs that never read a frame have no BER: they show in the goodput panel as zeros.
-        ber = {n: [100 * p.ber for p in by_n[n] if p.ber is not None] for n in present}
-        read = [n for n in present if ber[n]]
-        if read:
-            ax_ber.boxplot(
-                [ber[n] for n in read], positions=[pos[present.index(n)] for n in read], **style
-            )
-        ax_rate.boxplot(
-            [[p.goodput_bps / 1e3 for p in by_n[n]] for n in present], positions=pos, **style
+    colour = {label: colours[i % len(colours)] for i, label in enumerate(labels)}
+    cells = sorted({p.cells for p in points})
+    levels = sorted({p.lux for p in points})
+    fig, axes = plt.subplots(len(levels), 2, figsize=(11, 4.2 * len(levels)), squeeze=False)
+    for lux, (ax_ber, ax_rate) in zip(levels, axes, strict=True):
+        groups: dict[tuple[str, float], dict[int, list[StreamingPoint]]] = defaultdict(
+            lambda: defaultdict(list)
         )
-        ax_rate.plot([], [], "s", color=colour, alpha=0.6, label=label)
-        limit = [by_n[n][0].raw_bps / 1e3 for n in present]
-        ax_rate.plot(pos, limit, "_", color=colour, markersize=14, markeredgewidth=2)
-    ax_rate.axhline(
-        PAPER_PEAK_BPS / 1e3, color="grey", ls="--", lw=1, label="paper peak, 114 kbit/s"
-    )
-    ax_rate.plot([], [], "_", color="black", markersize=14, label="physical limit N² x frame rate")
-    for ax, title in ((ax_ber, "BER before FEC [%]"), (ax_rate, "goodput after FEC [kbit/s]")):
-        ax.set_xticks(range(len(cells)), [f"{n}x{n}" for n in cells])
-        ax.set_xlim(-0.5, len(cells) - 0.5)
-        ax.set_xlabel("payload cells")
-        ax.set_title(title)
-        ax.grid(alpha=0.3)
-    ax_rate.legend(fontsize=7, loc="upper left")
+        for p in points:
+            if p.lux == lux:
+                groups[(p.profile, p.refresh_hz)][p.cells].append(p)
+        width = 0.8 / len(groups)
+        for g, (label, by_n) in enumerate(sorted(groups.items())):
+            present = [n for n in cells if n in by_n]
+            pos = [cells.index(n) + (g - (len(groups) - 1) / 2) * width for n in present]
+            style = {
+                "widths": width * 0.9,
+                "patch_artist": True,
+                "boxprops": {"facecolor": colour[label], "alpha": 0.6},
+                "medianprops": {"color": "black"},
+            }
+            # Runs that never read a frame have no BER: they show in the goodput panel as zeros.
+            ber = {n: [100 * p.ber for p in by_n[n] if p.ber is not None] for n in present}
+            read = [n for n in present if ber[n]]
+            if read:
+                ax_ber.boxplot(
+                    [ber[n] for n in read], positions=[pos[present.index(n)] for n in read], **style
+                )
+            ax_rate.boxplot(
+                [[p.goodput_bps / 1e3 for p in by_n[n]] for n in present], positions=pos, **style
+            )
+            name = f"{label[0]} {label[1]:g} Hz"
+            ax_rate.plot([], [], "s", color=colour[label], alpha=0.6, label=name)
+            limit = [by_n[n][0].raw_bps / 1e3 for n in present]
+            ax_rate.plot(pos, limit, "_", color=colour[label], markersize=14, markeredgewidth=2)
+        ax_rate.axhline(
+            PAPER_PEAK_BPS / 1e3, color="grey", ls="--", lw=1, label="paper peak, 114 kbit/s"
+        )
+        ax_rate.plot(
+            [], [], "_", color="black", markersize=14, label="physical limit N² x frame rate"
+        )
+        for ax, title in ((ax_ber, "BER before FEC [%]"), (ax_rate, "goodput after FEC [kbit/s]")):
+            ax.set_xticks(range(len(cells)), [f"{n}x{n}" for n in cells])
+            ax.set_xlim(-0.5, len(cells) - 0.5)
+            ax.set_xlabel("payload cells")
+            ax.set_title(f"{title}, {lux:g} lux")
+            ax.grid(alpha=0.3)
+        ax_rate.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
