@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from bench.experiments.eventcam import HAND_HELD_TRACKER, clip_message
 from bench.experiments.eventcam import hand_held_scene as paper_hand_held_scene
@@ -20,8 +21,10 @@ from receiver.pipeline import receiver as receiver_module
 from receiver.pipeline.buffer import to_columns
 from receiver.pipeline.config import DecoderParams, DetectorParams, ReceiverConfig
 from receiver.pipeline.detector import (
+    Detection,
     blinking_region,
     locator_cells,
+    nearest_turn,
     orient,
     ring_cells,
     ring_support,
@@ -487,6 +490,63 @@ def test_a_lock_a_quarter_turn_off_is_dropped_within_a_few_frames(
         assert drop.t_us - lock.t_us <= within_us
     accepted = sum(f.accepted for f in run["frames"])
     assert accepted <= config.decoder.turn_frames * len(locks)
+
+
+def _detection(config: ReceiverConfig, T_cam_world: np.ndarray, turns: int) -> Detection:
+    """A detection of the locator seen from ``T_cam_world``, its corners ``turns`` off."""
+    world = config.geometry.locator_corners(config.marker_size_m)
+    corners = config.camera.project(world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
+    corners = np.roll(corners, -turns, axis=0)
+    T = pnp(corners, world, config.camera)
+    return Detection(corners, T, 0, 0.0, config.blink_hz, 1.0, 1.0, np.zeros(2))
+
+
+@pytest.mark.parametrize("turns", range(4))
+def test_a_detection_takes_the_quarter_turn_nearest_a_recent_pose(turns):
+    config = hand_held_config()
+    centre = config.geometry.locator_corners(config.marker_size_m).mean(axis=0)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [8, -12, 25], degrees=True).as_matrix()
+    T[:3, 3] = [0.03, -0.02, 0.6] - T[:3, :3] @ centre
+    prior = T.copy()  # a verified frame's pose, the camera having turned a little since
+    prior[:3, :3] = Rotation.from_euler("z", 6, degrees=True).as_matrix() @ T[:3, :3]
+    found = nearest_turn(_detection(config, T, turns), prior, config)
+    truth = _detection(config, T, 0)
+    assert np.allclose(found.corners_px, truth.corners_px)
+    assert np.allclose(found.T_cam_world, truth.T_cam_world, atol=1e-6)
+    assert found.oriented == (turns == 0)  # a changed turn must be confirmed by the frames
+
+
+def test_a_relock_soon_after_a_verified_frame_keeps_its_turn(slow_clip, monkeypatch):
+    """Every detection after the first comes back half a turn off, as two relocks of
+    0.25 px/ms paths did (and then tracked 20 cm off): the pose of the latest verified frame
+    must turn it back. The first lock is lost once after its first verified frame."""
+    detect, calls = receiver_module.detect, []
+
+    def misread(events, config):
+        found = detect(events, config)
+        calls.append(found)
+        if len(calls) == 1:
+            return found
+        world = config.geometry.locator_corners(config.marker_size_m)
+        corners = np.roll(found.corners_px, -2, axis=0)
+        return replace(found, corners_px=corners, T_cam_world=pnp(corners, world, config.camera))
+
+    off_edges, lost = Receiver._off_edges, []
+
+    def lose_once(self):
+        if not lost and self.stream.verified_bits:
+            lost.append(True)
+            return "lost once by the test"
+        return off_edges(self)
+
+    monkeypatch.setattr(receiver_module, "detect", misread)
+    monkeypatch.setattr(Receiver, "_off_edges", lose_once)
+    run = _replay(*slow_clip)
+    locks = [c.t_us for c in run["changes"] if c.state == TRACKING]
+    assert lost and len(locks) == 2, [(c.t_us, c.reason) for c in run["changes"]]
+    relocked = run["err"][run["t"] >= locks[1]]
+    assert len(relocked) and relocked.max() <= FIRST_POSE_MAX_M
 
 
 def test_the_l_check_needs_at_least_one_frame():

@@ -83,6 +83,10 @@ class DetectorParams:
     the first locks from 85-657 ms to 70-153 ms, all right. At 2 px/ms right and wrong captures
     agree at +0.97 to +1.0 alike: without either limit five 1 s clips there tracked poses more
     than 5 cm off for 1.4 s, with both for 0.5 s."""
+    turn_memory_us: int = 500_000
+    """A detection within this much event time of a frame that passed its check takes the
+    quarter turn nearest that frame's pose (``detector.nearest_turn``): a hand-held camera
+    turns a few degrees in that time, far from the 45 that would make the turn ambiguous."""
     min_lock_fit_ratio: float = 0.6
     """Under motion, a lock stands only if this share of the events near the ring lie on its
     edges while the buffered events are tracked (a still camera's ring fires only noise)."""

@@ -45,7 +45,7 @@ from occ.stream import ReceivedMessage, StreamDecoder
 from receiver.pipeline.buffer import EventBuffer, to_columns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.decoder import CellReader, FrameRead, cell_side_px, read_stride
-from receiver.pipeline.detector import Detection, MarkerNotFound, detect
+from receiver.pipeline.detector import Detection, MarkerNotFound, detect, nearest_turn
 from receiver.pipeline.filters import EventFilter
 from receiver.pipeline.pose import interpolate_pose, project_ideal
 from receiver.pipeline.smoothing import PoseSmoother
@@ -140,6 +140,8 @@ class Receiver:
         (``DecoderParams.late_mark_px_per_cell``)."""
         self._probation: int | None = None
         """Frames left for a lock on probation to pass a frame check (``_failed_probation``)."""
+        self._verified: tuple[int, np.ndarray] | None = None
+        """(time, T_cam_world) of the latest frame that passed its check (``turn_memory_us``)."""
         self._turn_leads: deque[float] = deque(maxlen=config.decoder.turn_frames)
         """The latest read frames' leads of the locator's canonical turn (``_misturned``)."""
         self._gaps: deque[tuple[int, int]] = deque(maxlen=8)
@@ -216,10 +218,19 @@ class Receiver:
             if found is None:
                 with self._cpu("detect"):
                     found = detect(self._buffer.parts_between(now - window, now), self.config)
+                    if (prior := self._recent_verified(now)) is not None:
+                        found = nearest_turn(found, prior, self.config)
             return self._lock(found, now)
         except MarkerNotFound as exc:
             self._detection_failed(now, str(exc), time.process_time() - cpu0)
             return []
+
+    def _recent_verified(self, now: int) -> np.ndarray | None:
+        """The pose of the latest frame that passed its check, if within ``turn_memory_us``
+        (``detector.nearest_turn``)."""
+        if self._verified is None or now - self._verified[0] > self.config.detector.turn_memory_us:
+            return None
+        return self._verified[1]
 
     def _detection_failed(self, now: int, reason: str, cpu_s: float) -> None:
         """Count the failure and schedule the next attempt ``retry_us`` of event time later (so
@@ -455,6 +466,8 @@ class Receiver:
             with self._cpu("stream"):
                 messages = self.stream.push(read.bits, read.confidence)
             frame = FrameOutput(read, True, self.stream.verified_bits - verified)
+            if frame.payload_bits:
+                self._verified = (read.t_us, self.pose_at(read.t_us))
             out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]
             if self._failed_probation(frame):
