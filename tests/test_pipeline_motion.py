@@ -417,13 +417,30 @@ def test_at_1_px_per_ms_the_first_lock_is_the_right_one():
     assert np.median(run["err"]) <= TRACKED_RMS_M
 
 
-def test_a_camera_drifting_too_slowly_for_a_flow_is_not_locked_on_its_smeared_image():
+@pytest.fixture(scope="module")
+def drifting() -> dict:
+    """Seed 3 at 0.25 px/ms, the slowest flow of ``bench.tracking``."""
+    return _run(0.25, 0.2, seed=3)
+
+
+def test_a_camera_drifting_too_slowly_for_a_flow_is_not_locked_on_its_smeared_image(drifting):
     """Seed 3 at 0.25 px/ms: the burst gave no flow, and the still path fitted its quadrilateral
     to the smeared phase-locked image, 11 cm off, its 'L' leading at 0.33 where a still
     marker's leads by 1.2 or more (``DetectorParams.min_still_orientation_score``)."""
-    run = _run(0.25, 0.2, seed=3)
-    assert any(c.state == TRACKING for c in run["changes"]), run["stats"].detection_failures
-    assert run["err"].max() <= WRONG_LOCK_M
+    assert any(c.state == TRACKING for c in drifting["changes"]), dict(
+        drifting["stats"].detection_failures
+    )
+    assert drifting["err"].max() <= WRONG_LOCK_M
+
+
+def test_a_slowly_drifting_camera_locks_on_its_burst_square_within_100_ms(drifting):
+    """The slow ring fires too little for the capture onto its edges, which settled a ring
+    width off and hid the 'L' (first lock at 158 ms); the burst's square reads it clearly
+    (``DetectorParams.max_square_flow_px_per_ms``)."""
+    stats = drifting["stats"]
+    assert stats.lock_times_us, dict(stats.detection_failures)
+    assert stats.lock_times_us[0] - stats.first_event_us <= 100_000
+    assert drifting["err"][0] <= FIRST_POSE_MAX_M
 
 
 def _turned_detections(monkeypatch, turns: int, oriented: bool) -> None:
@@ -591,6 +608,17 @@ def test_a_lock_under_motion_whose_frames_never_verify_is_dropped(slow_clip):
     assert drops[0].reason == "no frame passed its check since the lock"
     read = [f for f in run["frames"] if f.read.t_us <= drops[0].t_us and f.accepted]
     assert len(read) == 3  # the lock's frames (from its burst, before the lock's StateChange)
+
+
+def test_a_verified_frame_settles_a_lock_under_motion_whatever_its_fit_ratio(slow_clip):
+    """A slow ring's few events can leave a right pose's fit ratio low; only a right pose reads
+    a frame that passes its check (here no fit ratio is high enough)."""
+    base = hand_held_config()
+    config = replace(base, detector=replace(base.detector, min_lock_fit_ratio=1.01))
+    assert _replay(*slow_clip, config)["stats"].lock_times_us
+    never = _replay(*slow_clip, config, _NeverVerifies(profile=config.profile, cells=config.cells))
+    assert not never["stats"].lock_times_us
+    assert any("lie on its edges" in r for r in never["stats"].detection_failures)
 
 
 def test_a_still_lock_needs_no_probation():

@@ -70,6 +70,16 @@ class DetectorParams:
     'L' leads by 1.2-1.3 (346x260 tests, 1280x720 at 10 lux). A camera drifting too slowly for
     the burst to give a flow (240x180 at 0.25 px/ms) smears that image, and the quadrilateral
     fitted to it was 11 and 23 cm off on two of five clips, its 'L' leading by 0.33 and 0.25."""
+    max_square_flow_px_per_ms: float = 0.3
+    min_square_orientation_score: float = 0.5
+    """Up to this flow the square fitted to the burst's locator gives the pose itself if it
+    reads the 'L' at least this clearly; faster bursts are pulled onto the ring's edge events
+    first. A slow ring fires little beside the burst's own ON events, and the capture then
+    settles a ring width off: on five 240x180 clips at 0.25 px/ms, squares 2 px from the
+    truth reading the 'L' at 0.5-0.9 were captured 5-7 px off, where it read at 0-0.4. With
+    the square the first locks came at 81-89 ms on four clips and 248 on the fifth, all
+    within 5 cm (81-288 ms without, one 6 cm off and a quarter turn); a square's pose is up to
+    5 cm off, and the tracker had taken it to within 0.1-1.8 cm 5 ms later."""
     min_edge_polarity: float = 0.7
     """Under motion, the ring fitted at the burst must fire with the polarities the flow gives
     its edges (``detector.ring_support``) at least this well: +1.0 at the true pose on the

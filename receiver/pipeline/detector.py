@@ -19,10 +19,12 @@ Still camera:
    is read in all four rotations; the best match orders the corners TL, TR, BR, BL.
 
 Moving camera: per-pixel triplets break once the marker slides a cell per blink, so everything
-comes from the one compensated burst and its fitted locator square (``locate``). The square is
-only a start for the ring's edges, one cell wide, and it ignores perspective: a few scaled copies
-of it are each pulled onto the ring's edge events around the burst (``EdgeTracker.capture``), and
-the pose that puts the most events on the edges wins. The locator's "L" is then read through
+comes from the one compensated burst and its fitted locator square (``locate``). A slow burst's
+square that reads the 'L' clearly gives the pose itself, as a slow ring fires too little to fit
+(``DetectorParams.max_square_flow_px_per_ms``). Otherwise the square is only a start for the
+ring's edges, one cell wide, and it ignores perspective: a few scaled copies of it are each
+pulled onto the ring's edge events around the burst (``EdgeTracker.capture``), and the pose
+that puts the most events on the edges wins. The locator's "L" is then read through
 that pose; where it is unclear but the fit is sound, the best guess of its turn goes on to the
 frames read after the burst, which must confirm it (``Detection.oriented``).
 
@@ -513,6 +515,14 @@ def _detect_moving(
     quad = fit_square(burst.image, quad, geo.locator_side, geo.ring) + origin
     check_quadrilateral(quad, params)
     tb = round(burst.t_us)
+    if np.linalg.norm(burst.flow) <= params.max_square_flow_px_per_ms:
+        square, score = orient(quad - origin, burst.image, geo)
+        if score >= params.min_square_orientation_score:
+            square = square + origin
+            T = _solve_pnp(square, config)
+            return Detection(
+                square, T, tb, burst.t_us, config.blink_hz, region.harmonic_ratio, score, burst.flow
+            )
     world = geo.locator_corners(config.marker_size_m)
     half = int(np.clip(1e3 / max(np.linalg.norm(burst.flow), 1e-9), 250, _CAPTURE_HALF_US))
     ring_events = to_columns(
