@@ -199,6 +199,16 @@ def test_fit_ratio_drops_when_events_miss_the_edges():
     assert list(tracker.fit_history) == pytest.approx([1.0, tracker.fit_ratio], abs=0.1)
 
 
+def test_the_fit_ratio_is_judged_only_while_the_image_moves_if_so_set():
+    """A near-still ring fires little, and its band holds the blinking locator's events."""
+    config = replace(CONFIG, tracker=replace(CONFIG.tracker, min_fit_speed_px_per_ms=0.2))
+    truth = invert(_view())
+    for flow, judged in ((0.1, False), (0.4, True)):
+        tracker = EdgeTracker(config, truth.copy(), flow_px_per_ms=np.array([0.0, flow]))
+        tracker.push(*_edge_events(truth, 0, n_per_edge=100))
+        assert (tracker.fit_ratio is not None) == judged, flow
+
+
 def test_tracking_is_lost_when_the_fit_ratio_stays_low_not_at_one_dip():
     """One judgement of events off the edges is how a correct pose looks for a moment under slow
     motion (few edge events, the blinking locator beside the ring); a slipped pose stays low."""

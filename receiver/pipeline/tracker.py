@@ -403,8 +403,14 @@ class EdgeTracker:
 
     @property
     def fit_ratio(self) -> float | None:
-        """Share of the latest band events that lie on an edge; None until enough were seen."""
+        """Share of the latest band events that lie on an edge, judged while the image moves
+        (``TrackerParams.min_fit_speed_px_per_ms``); None until enough were seen."""
         return self.fit_history[-1] if self.fit_history else None
+
+    @property
+    def image_speed_px_per_ms(self) -> float:
+        """Median speed of the edges' ends in the image."""
+        return float(np.median(np.linalg.norm(self._va + self._vb, axis=1))) * 500
 
     @property
     def contradicted(self) -> bool:
@@ -558,7 +564,8 @@ class EdgeTracker:
                 self._age_out(now)  # stale slots leave the indicators
             start = stop
         if self._fit[0] >= q.fit_min_events:
-            self.fit_history.append(float(self._fit[1] / self._fit[0]))
+            if self.image_speed_px_per_ms >= q.min_fit_speed_px_per_ms:
+                self.fit_history.append(float(self._fit[1] / self._fit[0]))
             self._fit[:2] = 0
         return updates
 
