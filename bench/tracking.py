@@ -118,14 +118,24 @@ def main() -> None:
     args = parser.parse_args()
     if args.quick:
         args.flows, args.seeds, args.seconds = [0.5], 1, 1.0
-    duration = args.seconds
-    config = hand_held_config()
-    tracker = config.tracker
-    clips = [(flow, seed, duration) for flow in args.flows for seed in range(args.seeds)]
+    clips = [(flow, seed, args.seconds) for flow in args.flows for seed in range(args.seeds)]
     with ProcessPoolExecutor(args.jobs) as pool:  # clips are independent: one per core
         rows = list(pool.map(run_one, *zip(*clips, strict=True)))
     for row in rows:
         print(row)
+    command = "python -m bench.tracking" + (
+        " --quick"
+        if args.quick
+        else f" --seeds {args.seeds} --seconds {args.seconds:g} --flows "
+        + " ".join(f"{f:g}" for f in args.flows)
+    )
+    write_report(rows, args.flows, args.seconds, command)
+
+
+def write_report(rows: list[dict], flows: list[float], duration: float, command: str) -> None:
+    """The BENCHMARKS.md section of ``run_one``'s rows."""
+    config = hand_held_config()
+    tracker = config.tracker
     lines = [
         "| flow px/ms | seed | first lock ms | detection attempts | first pose cm | "
         f"tracked > {WRONG_M * 100:.0f} cm off ms | ATE cm | RPE cm / 10 ms | RPE deg | BER | "
@@ -152,35 +162,41 @@ def main() -> None:
         "lock within 300 ms, first pose within 5 cm, ATE <= 1 cm, every message decoded, "
         ">= 1 kHz poses. "
         "Detection under motion: a blink map of 8 px tiles, one motion-compensated burst, a fitted "
-        "locator square, captures onto the ring's edge events from scaled copies of it (and of "
-        "the square a ring width smaller), where an event counts for an edge only with the "
-        "polarity the burst's image flow gives that edge; among the fits whose edge events "
-        f"agree with those polarities (>= {config.detector.min_edge_polarity:g}; about +1 at "
-        "the true pose) the one with the most "
-        "events on the edges wins, and without one the attempt fails. Then the 'L' read through "
-        "that pose (where it is unclear, a fit agreeing at >= "
+        "locator square. Up to "
+        f"{config.detector.max_square_flow_px_per_ms:g} px/ms of flow the square gives the pose "
+        "itself if it reads the 'L' at >= "
+        f"{config.detector.min_square_orientation_score:g} (a slow ring fires too little beside "
+        "the burst's own events to fit); otherwise captures onto the ring's edge events from "
+        "scaled copies of it (and of the square a ring width smaller), where an event counts for "
+        "an edge only with the polarity the burst's image flow gives that edge; among the fits "
+        "whose edge events agree with those polarities "
+        f"(>= {config.detector.min_edge_polarity:g}; about +1 at the true pose) the one with the "
+        "most events on the edges wins, and without one the attempt fails. Then the 'L' read "
+        "through that pose (where it is unclear, a fit agreeing at >= "
         f"{config.detector.unoriented_edge_polarity:g} at a flow of at most "
         f"{config.detector.max_unoriented_flow_px_per_ms:g} px/ms keeps its best guess of the "
-        "turn if the frames after the burst read it that way up), and a lock verified on the "
-        "buffered frames after the burst's (locator contrast, fit ratio), waiting for the next "
-        "frame if need be. "
+        "turn if the frames after the burst read it that way up); within "
+        f"{config.detector.turn_memory_us / 1e6:g} s of a frame that passed its check, the quarter "
+        "turn nearest that frame's pose wins instead. The lock is verified on the buffered frames "
+        "after the burst's (locator contrast and fit ratio, or a frame passing its check), "
+        "waiting for the next frame if need be. "
         "While it tracks, every frame also reads the locator ring in all four quarter turns, "
         "and tracking is lost when the canonical turn's median lead over the others, over the "
         "last three frames, falls below 0.5 (a tracked pose leads by ~1.5); a lock from a "
         "detection under motion is also dropped if none of its first "
         f"{config.decoder.probation_frames} frames passes its CRC. "
-        "Without the polarities the capture often settled on the black ring around the white "
-        "one: a pose a ring width too near that read the white ring as the 'L' a quarter turn "
-        "off and passed every other check (issue 4; at 1 px/ms such locks were tracked for up "
-        "to 0.4 s per path, and the first right lock took up to 2.2 s). 'never' under first "
-        "lock: no lock during the clip (ATE etc. then have nothing to score). At 0.25 px/ms locks "
-        "still start wrong now and then: a ring fitted a ring width off reads the white ring as "
-        "the 'L' (seed 1's, from a burst without a clear 'L', 21 cm off, until the fit-ratio "
-        "check dropped it 0.19 s later), and a burst's 'L' read a quarter turn off can pass on "
-        "the frames after it (seed 4's first lock, 6 cm off, until the 'L' check dropped it 70 "
-        "ms later). Until commit 87e035a the still path also locked on the smeared image of a "
-        "camera drifting too slowly for the burst to give a flow (seeds 3 and 4, 10 and 21 cm "
-        "off)."
+        "'never' under first lock: no lock during the clip (ATE etc. then have nothing to "
+        "score). Without the polarities the capture often settled on the black ring around the "
+        "white one: a pose a ring width too near that read the white ring as the 'L' a quarter "
+        "turn off and passed every other check (issue 4; at 1 px/ms such locks were tracked for "
+        "up to 0.4 s per path, and the first right lock took up to 2.2 s). At 0.25 px/ms, "
+        "until commit 4a4539c relocks after a loss came half a turn off now and then (seeds 1 "
+        "and 4, 21-22 cm off for 190 and 40 ms: ATE 1.51 and 1.60 cm); until ae6e6b6 the capture "
+        "settled a ring width off and hid the 'L' (first locks 81-288 ms, median 151); until "
+        "9d1e5dd the fit ratio was judged while the camera nearly stood still, and dropped 2-7 "
+        "right poses per path. Until commit 87e035a the still path also locked on the smeared "
+        "image of a camera drifting too slowly for the burst to give a flow (seeds 3 and 4, 10 "
+        "and 21 cm off)."
         "\n\n" + "\n".join(lines)
     )
     summary = [
@@ -188,7 +204,7 @@ def main() -> None:
         "median pose updates/s | time tracked > 5 cm off |",
         "|---" * 8 + "|",
     ]
-    for flow in args.flows:
+    for flow in flows:
         mine = [r for r in rows if r["flow"] == flow]
         locked = [r for r in mine if r["lock_ms"] is not None]
         ate = [r["ate_cm"] for r in locked if np.isfinite(r["ate_cm"])] or [np.nan]
@@ -199,12 +215,6 @@ def main() -> None:
             f"{sum(r['decoded'] for r in mine)} of {len(mine)} | {np.median(hz):.0f} | "
             f"{off_s:.2f} s of {len(mine) * duration:g} s |"
         )
-    command = "python -m bench.tracking" + (
-        " --quick"
-        if args.quick
-        else f" --seeds {args.seeds} --seconds {duration:g} --flows "
-        + " ".join(f"{f:g}" for f in args.flows)
-    )
     write_section(
         "tracking",
         "Hand-held tracking",
