@@ -443,6 +443,13 @@ def test_a_slowly_drifting_camera_locks_on_its_burst_square_within_100_ms(drifti
     assert drifting["err"][0] <= FIRST_POSE_MAX_M
 
 
+def _turned(found: Detection, config: ReceiverConfig, turns: int) -> Detection:
+    """``found`` with its corners rolled ``turns`` quarter turns and its pose solved again."""
+    corners = np.roll(found.corners_px, -turns, axis=0)
+    world = config.geometry.locator_corners(config.marker_size_m)
+    return replace(found, corners_px=corners, T_cam_world=pnp(corners, world, config.camera))
+
+
 def _turned_detections(monkeypatch, turns: int, oriented: bool) -> None:
     """Every detection whose burst showed the 'L' clearly (the others fail) comes back ``turns``
     quarter turns off (corners rolled, pose solved again), as fast motion made them: the ring
@@ -454,10 +461,7 @@ def _turned_detections(monkeypatch, turns: int, oriented: bool) -> None:
         found = detect(events, config)
         if not found.oriented:  # its turn is a guess: turning it need not make it wrong
             raise MarkerNotFound("no clear 'L'")
-        corners = np.roll(found.corners_px, -turns, axis=0)
-        world = config.geometry.locator_corners(config.marker_size_m)
-        T = pnp(corners, world, config.camera)
-        return replace(found, corners_px=corners, T_cam_world=T, oriented=oriented)
+        return replace(_turned(found, config, turns), oriented=oriented)
 
     monkeypatch.setattr(receiver_module, "detect", turned)
 
@@ -513,9 +517,8 @@ def _detection(config: ReceiverConfig, T_cam_world: np.ndarray, turns: int) -> D
     """A detection of the locator seen from ``T_cam_world``, its corners ``turns`` off."""
     world = config.geometry.locator_corners(config.marker_size_m)
     corners = config.camera.project(world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
-    corners = np.roll(corners, -turns, axis=0)
-    T = pnp(corners, world, config.camera)
-    return Detection(corners, T, 0, 0.0, config.blink_hz, 1.0, 1.0, np.zeros(2))
+    found = Detection(corners, T_cam_world, 0, 0.0, config.blink_hz, 1.0, 1.0, np.zeros(2))
+    return _turned(found, config, turns)
 
 
 @pytest.mark.parametrize("turns", range(4))
@@ -543,11 +546,7 @@ def test_a_relock_soon_after_a_verified_frame_keeps_its_turn(slow_clip, monkeypa
     def misread(events, config):
         found = detect(events, config)
         calls.append(found)
-        if len(calls) == 1:
-            return found
-        world = config.geometry.locator_corners(config.marker_size_m)
-        corners = np.roll(found.corners_px, -2, axis=0)
-        return replace(found, corners_px=corners, T_cam_world=pnp(corners, world, config.camera))
+        return found if len(calls) == 1 else _turned(found, config, 2)
 
     off_edges, lost = Receiver._off_edges, []
 
