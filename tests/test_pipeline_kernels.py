@@ -450,7 +450,7 @@ def test_rebinning_into_fewer_bins_keeps_each_bins_newest_event(seed, cap):
     _reassign(old_x, old_y, old_t, since, a, b, gate, np.array([cap]), *slots, sd, sum_d, n_valid)
     newest: dict[int, tuple[int, float]] = {}
     for x, y, t in zip(old_x[0], old_y[0], old_t[0], strict=True):
-        s = min(int((x - 10) * 100 / 100**2 * cap), cap - 1)  # as _to_segment rounds it
+        s = min(int((x - 10) * 100 * (1 / 100**2) * cap), cap - 1)  # as _to_segment rounds it
         if t >= since and abs(y - 20) <= gate[0] and t >= newest.get(s, (-1,))[0]:
             newest[s] = (int(t), x)
     sx, _, st_ = slots

@@ -67,18 +67,23 @@ left its gate anyway."""
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _along(px, py, ax, ay, dx, dy):
-    """Position (0..1) of point p's nearest point on the segment a -> a + (dx, dy)."""
+def _inv_len2(dx, dy):
+    """1 / the squared length of a segment (dx, dy), 0 for a point: ``_along``'s divisor,
+    computed once per segment rather than once per event."""
     L2 = dx * dx + dy * dy
-    w = ((px - ax) * dx + (py - ay) * dy) / L2 if L2 > 0 else 0.0
-    return min(max(w, 0.0), 1.0)
+    return 1.0 / L2 if L2 > 0 else 0.0
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _to_segment(px, py, ax, ay, bx, by):
-    """(distance, position along the segment in 0..1) of point p to segment ab."""
-    dx, dy = bx - ax, by - ay
-    w = _along(px, py, ax, ay, dx, dy)
+def _along(px, py, ax, ay, dx, dy, inv_len2):
+    """Position (0..1) of point p's nearest point on the segment a -> a + (dx, dy)."""
+    return min(max(((px - ax) * dx + (py - ay) * dy) * inv_len2, 0.0), 1.0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _to_segment(px, py, ax, ay, dx, dy, inv_len2):
+    """(distance, position along the segment in 0..1) of point p to segment a -> a + (dx, dy)."""
+    w = _along(px, py, ax, ay, dx, dy, inv_len2)
     ex, ey = ax + w * dx - px, ay + w * dy - py
     return np.sqrt(ex * ex + ey * ey), w
 
@@ -108,13 +113,14 @@ def _nearest_edge(xu, yu, a, b, reach=np.inf):
     n, m = xu.shape[0], a.shape[0]
     dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
     far2 = _line_far2(reach, dx, dy)
+    inv = np.array([_inv_len2(dx[e], dy[e]) for e in range(m)])
     dist, edge = np.full(n, np.inf), np.zeros(n, np.int64)
     for i in range(n):
         px, py = xu[i], yu[i]
         for e in range(m):
             if _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], far2[e]):
                 continue
-            d, _ = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+            d, _ = _to_segment(px, py, a[e, 0], a[e, 1], dx[e], dy[e], inv[e])
             if d < dist[i] and d <= reach:
                 dist[i], edge[i] = d, e
     return dist, edge
@@ -198,33 +204,41 @@ def _assign(
     measured and binned. Stop after the first event that makes more than one indicator exceed
     half its gate (at or after ``due_us``), or at ``force_us`` once new events joined. Returns
     (index to resume from, whether it stopped)."""
-    # ``_off_line`` rules out most of the eight edges before the exact distance: first for the
-    # gate, then, only if no edge took the point, for the band.
+    # ``_off_line`` rules out most of the eight edges before the exact distance: first on the
+    # event as it came, with the band widened by the farthest its edge's motion can carry it
+    # (an edge ruled out there is beyond its band and gate once carried), then on the carried
+    # event for the gate and, only if no edge took the point, for the band.
     m = a.shape[0]
     dx, dy = np.empty(m), np.empty(m)
-    gate_far2, band_far2 = np.empty(m), np.empty(m)
+    gate_far2, band_far2, raw_far2, inv = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
     late = np.zeros(m, np.bool_)
     for e in range(m):
         dx[e], dy[e] = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+        inv[e] = _inv_len2(dx[e], dy[e])
         gate_far2[e] = _line_far2(gate[e], dx[e], dy[e])
         band_far2[e] = _line_far2(band[e], dx[e], dy[e])
+        speed = max(np.hypot(va[e, 0], va[e, 1]), np.hypot(vb[e, 0], vb[e, 1]))
+        raw_far2[e] = _line_far2(band[e] + speed * _CARRY_US, dx[e], dy[e])
         late[e] = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
     n_late = late.sum()  # kept up to date as events join, instead of recounted per event
     dv = vb - va  # an edge's velocity varies linearly from ``va`` to ``vb`` along it
     qx, qy = np.empty(m), np.empty(m)
+    reachable = np.empty(m, np.bool_)
     for i in range(start, t.shape[0]):
         dt = float(min(max(t[i] - ref_us, -_CARRY_US), _CARRY_US))
         x, y = np.float64(xu[i]), np.float64(yu[i])
         for e in range(m):  # the event as each edge's motion places it at ``ref_us``
-            w = _along(x, y, a[e, 0], a[e, 1], dx[e], dy[e])
-            qx[e] = x - (va[e, 0] + w * dv[e, 0]) * dt
-            qy[e] = y - (va[e, 1] + w * dv[e, 1]) * dt
+            reachable[e] = not _off_line(x, y, a[e, 0], a[e, 1], dx[e], dy[e], raw_far2[e])
+            if reachable[e]:
+                w = _along(x, y, a[e, 0], a[e, 1], dx[e], dy[e], inv[e])
+                qx[e] = x - (va[e, 0] + w * dv[e, 0]) * dt
+                qy[e] = y - (va[e, 1] + w * dv[e, 1]) * dt
         near, on = False, False
         for e in range(m):
             px, py = qx[e], qy[e]
-            if _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], gate_far2[e]):
+            if not reachable[e] or _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], gate_far2[e]):
                 continue
-            d, w = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+            d, w = _to_segment(px, py, a[e, 0], a[e, 1], dx[e], dy[e], inv[e])
             near = near or d <= band[e]
             if d > gate[e]:
                 continue
@@ -246,8 +260,8 @@ def _assign(
             if near:
                 break
             px, py = qx[e], qy[e]
-            if not _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], band_far2[e]):
-                d, _ = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+            if reachable[e] and not _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], band_far2[e]):
+                d, _ = _to_segment(px, py, a[e, 0], a[e, 1], dx[e], dy[e], inv[e])
                 near = d <= band[e]
         if near:
             fit[0] += 1
@@ -279,12 +293,14 @@ def _reassign(old_x, old_y, old_t, since_us, a, b, gate, cap, sx, sy, st, sd, su
     one edge, without its indicators and fit counts (the re-binned events were counted in the
     fit already). Runs at every pose update."""
     for e in range(old_t.shape[0]):
+        dx, dy = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+        inv = _inv_len2(dx, dy)
         for i in range(old_t.shape[1]):
             t = old_t[e, i]
             if t < since_us:  # stale, or an empty slot (-1)
                 continue
             px, py = old_x[e, i], old_y[e, i]
-            d, w = _to_segment(px, py, a[e, 0], a[e, 1], b[e, 0], b[e, 1])
+            d, w = _to_segment(px, py, a[e, 0], a[e, 1], dx, dy, inv)
             s = min(int(w * cap[e]), cap[e] - 1)
             if d <= gate[e] and st[e, s] <= t:
                 sx[e, s], sy[e, s], st[e, s], sd[e, s] = px, py, t, d
