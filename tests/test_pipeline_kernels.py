@@ -539,7 +539,7 @@ def test_cluster_assignment_matches_a_plain_loop(seed, moving):
 def test_capture_points_match_their_definition(seed, gate_scale):
     tracker, xu, yu = _tracker_and_points(seed, 400)
     a, b = tracker._a, tracker._b
-    ring_px = tracker._ring_px(a, b)
+    ring_px = tracker._band
     gate, deep = gate_scale * ring_px, 0.6 * ring_px
     centre = a.mean(axis=0)
     near, edge = _capture_points(xu, yu, a, b, gate, deep, centre)

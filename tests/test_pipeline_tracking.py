@@ -193,7 +193,7 @@ def test_fit_ratio_drops_when_events_miss_the_edges():
     tracker = EdgeTracker(CONFIG, truth.copy())
     tracker.push(*_edge_events(truth, 0, n_per_edge=100))
     assert tracker.fit_ratio > 0.9
-    ring_px = tracker._ring_px(*tracker._project_edges(truth)).min()
+    ring_px = tracker._layout(*tracker._project_edges(truth))[0].min()
     tracker.push(*_edge_events(truth, 2000, n_per_edge=100, offset_px=0.8 * ring_px, seed=3))
     assert tracker.fit_ratio < 0.5
     assert list(tracker.fit_history) == pytest.approx([1.0, tracker.fit_ratio], abs=0.1)
@@ -216,7 +216,7 @@ def test_tracking_is_lost_when_the_fit_ratio_stays_low_not_at_one_dip():
     truth = invert(_view())
     rx = Receiver(config)
     rx._tracker = tracker = EdgeTracker(config, truth.copy())
-    ring_px = tracker._ring_px(*tracker._project_edges(truth)).min()
+    ring_px = tracker._layout(*tracker._project_edges(truth))[0].min()
 
     def judge(t0_us: int, on_edges: bool) -> str | None:
         offset = 0.0 if on_edges else 0.5 * ring_px  # beyond the gates of both ring sides

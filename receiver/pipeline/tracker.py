@@ -148,6 +148,41 @@ def edge_polarities(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
+def _edge_layout(a, b, ring_m, world_len, gate_px, alpha):
+    """(band, gate, bins) of each projected edge ``a[i] -> b[i]`` (the outer ones, then the
+    inner ones) of world length ``world_len[i]``: the white ring's width ``ring_m`` in the image
+    along it, theta_d (``gate_px``) narrowed where the ring is thin so that the blinking inner
+    locator (one ring width inside the inner edges) never feeds a cluster, and ``alpha`` bins
+    per pixel of its length (at least 3). Compiled, as the rest of a pose update: it runs ~1000
+    times a second."""
+    m = a.shape[0]
+    band, gate, cap = np.empty(m), np.empty(m), np.empty(m, np.int64)
+    for e in range(m):
+        dx, dy = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+        length = np.sqrt(dx * dx + dy * dy)
+        band[e] = length * ring_m / world_len[e]
+        share = 0.45 if e < m // 2 else 0.3  # inner edges: near the locator
+        gate[e] = min(gate_px, share * band[e])
+        cap[e] = int(max(3.0, alpha * length))
+    return band, gate, cap
+
+
+@numba.njit(cache=True, nogil=True)
+def _empty_slots(cap):
+    """Empty clusters of ``cap[i]`` bins per edge: (x, y, time (-1: empty), distance) per bin,
+    and per edge the distance sum and the count of filled bins."""
+    m, width = cap.shape[0], cap.max()
+    return (
+        np.zeros((m, width)),
+        np.zeros((m, width)),
+        np.full((m, width), -1, np.int64),
+        np.zeros((m, width)),
+        np.zeros(m),
+        np.zeros(m, np.int64),
+    )
+
+
+@numba.njit(cache=True, nogil=True)
 def _capture_points(xu, yu, a, b, gate, deep_px, centre):
     """(whether it counts, nearest edge) of every point for a capture pass: it counts within
     its nearest edge's ``gate``, except more than ``deep_px`` on the centre side of an outer edge
@@ -365,14 +400,39 @@ def _carry(sx, sy, st, cap, va, vb, ref_us, now_us):
 
 
 @numba.njit(cache=True, nogil=True)
-def _slopes(t, y):
-    """Least-squares slope over times ``t`` (k,) of each of the series ``y`` (k, ...)."""
-    flat = y.reshape(t.shape[0], -1)
-    tc = t - t.mean()
-    out = np.zeros(flat.shape[1])
-    for i in range(t.shape[0]):
-        out += tc[i] * flat[i]
-    return (out / np.dot(tc, tc)).reshape(y.shape[1:])
+def _median_speed(va, vb):
+    """Median over the edges of the speed of their middles, moving at ``(va + vb) / 2``
+    (compiled: the tracker asks after every push, and numpy's median costs ~30 us)."""
+    speed = np.empty(va.shape[0])
+    for e in range(va.shape[0]):
+        speed[e] = 0.5 * np.hypot(va[e, 0] + vb[e, 0], va[e, 1] + vb[e, 1])
+    return np.median(speed)
+
+
+@numba.njit(cache=True, nogil=True)
+def _recent_velocity(times, ends, n, now_us, a, b):
+    """Append the projected ends ``a``, ``b`` of the edges at ``now_us`` to the first ``n`` of
+    the recent poses' ``times`` (k,) and ends (k, 16, 2), dropping the oldest beyond
+    ``_VELOCITY_SPAN_US`` while more than three remain; return their new count and, from three
+    on, the least-squares velocity (px/us) of each end over them (a line per coordinate)."""
+    m = a.shape[0]
+    times[n] = now_us
+    ends[n, :m], ends[n, m:] = a, b
+    n += 1
+    drop = 0
+    while n - drop > 3 and now_us - times[drop] > _VELOCITY_SPAN_US:
+        drop += 1
+    if drop:
+        n -= drop
+        times[:n] = times[drop : drop + n].copy()
+        ends[:n] = ends[drop : drop + n].copy()
+    v = np.zeros((2 * m, 2))
+    if n < 3:
+        return n, v
+    tc = times[:n] - times[:n].mean()
+    for i in range(n):
+        v += tc[i] * ends[i]
+    return n, v / np.dot(tc, tc)
 
 
 @dataclass
@@ -407,9 +467,10 @@ class EdgeTracker:
         self._slots = None
         flow = np.zeros(2) if flow_px_per_ms is None else np.asarray(flow_px_per_ms) / 1e3
         self._va = self._vb = np.tile(flow, (8, 1))
-        """Image velocity (px/us) of the edges' ends, fitted to the poses in ``_recent``."""
-        self._recent: deque[tuple[int, np.ndarray]] = deque()
-        """(time, the edges' projected ends) of the latest poses."""
+        """Image velocity (px/us) of the edges' ends, fitted to the latest poses."""
+        self._recent_t, self._recent_ends = np.empty(16), np.empty((16, 16, 2))
+        """Times and the edges' projected ends of the latest ``_n_recent`` poses."""
+        self._n_recent = 0
         self._fit = np.zeros(3, np.int64)
         self.fit_history: deque[float] = deque(maxlen=config.tracker.fit_judgements)
         """The latest ``fit_judgements`` fit ratios, oldest first."""
@@ -425,8 +486,8 @@ class EdgeTracker:
 
     @property
     def image_speed_px_per_ms(self) -> float:
-        """Median speed of the edges' ends in the image."""
-        return float(np.median(np.linalg.norm(self._va + self._vb, axis=1))) * 500
+        """Median speed of the edges' middles in the image."""
+        return _median_speed(self._va, self._vb) * 1e3
 
     @property
     def contradicted(self) -> bool:
@@ -459,36 +520,24 @@ class EdgeTracker:
         px = project_ideal(T, self.K, self.edges_world)  # (8, 2, 2)
         return np.ascontiguousarray(px[:, 0]), np.ascontiguousarray(px[:, 1])
 
-    def _ring_px(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Width of the white ring in the image along each edge."""
-        return np.linalg.norm(b - a, axis=1) * self._ring_m / self._world_len
-
-    def _gates(self, ring_px: np.ndarray) -> np.ndarray:
-        """theta_d, narrowed where the ring is thin in the image so that the blinking inner
-        locator (one ring width inside the inner edges) never feeds a cluster."""
-        share = np.where(np.arange(len(ring_px)) < 4, 0.45, 0.3)  # inner edges: near the locator
-        return np.minimum(self.config.tracker.gate_px, share * ring_px)
+    def _layout(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(band, gate, bins) of the projected edges ``a[i] -> b[i]`` (``_edge_layout``)."""
+        q = self.config.tracker
+        return _edge_layout(a, b, self._ring_m, self._world_len, q.gate_px, q.alpha)
 
     def _rebin(self, T: np.ndarray, now_us: int) -> None:
         a, b = self._project_edges(T)
-        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        if not (np.isfinite(a).all() and np.isfinite(b).all()):
             raise ValueError("marker behind the camera")
-        cap = np.maximum(3, (self.config.tracker.alpha * np.linalg.norm(b - a, axis=1))).astype(
-            np.int64
-        )
-        width = int(cap.max())
         old = self._slots
-        sx, sy = np.zeros((8, width)), np.zeros((8, width))
-        st, sd = np.full((8, width), -1, np.int64), np.zeros((8, width))
-        self._slots = (sx, sy, st, sd, np.zeros(8), np.zeros(8, np.int64))
-        ring_px = self._ring_px(a, b)
-        self._a, self._b, self._cap = a, b, cap
-        self._gate, self._band = self._gates(ring_px), ring_px
+        self._a, self._b = a, b
+        self._band, self._gate, self._cap = self._layout(a, b)
+        self._slots = _empty_slots(self._cap)
         self._ref_us = self._last_rebin_us = now_us  # the edges hold at ``now_us``
         if old is None:
             return
         since = max(0, now_us - self.config.tracker.max_age_us)
-        _reassign(old[0], old[1], old[2], since, a, b, self._gate, cap, *self._slots)
+        _reassign(old[0], old[1], old[2], since, a, b, self._gate, self._cap, *self._slots)
 
     def _age_out(self, now_us: int) -> None:
         """``_rebin`` at the current pose (whose edges the clusters already follow): only the
@@ -519,8 +568,8 @@ class EdgeTracker:
             a, b = self._project_edges(T)
             if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
                 return False
-            ring_px = self._ring_px(a, b)
-            gate = scale * ring_px if scale else self._gates(ring_px)
+            ring_px, gate, _ = self._layout(a, b)
+            gate = scale * ring_px if scale else gate
             near, edge = _capture_points(xu, yu, a, b, gate, _LOCATOR_GAP * ring_px, a.mean(axis=0))
             if motion is not None:
                 expected = edge_polarities(a, b, motion[1])[edge]
@@ -535,7 +584,7 @@ class EdgeTracker:
             return False  # the last pass put the marker behind the camera
         self.T_cam_world = T
         self._slots = None  # clusters of the old pose are meaningless
-        self._recent.clear()
+        self._n_recent = 0
         self._rebin(T, now_us)
         return True
 
@@ -616,11 +665,11 @@ class EdgeTracker:
     def _fit_velocity(self, now_us: int) -> None:
         """Fit the edges' ends' image velocity to the poses of the last ``_VELOCITY_SPAN_US``,
         or the last three (least squares, a line per coordinate); until three, keep the old."""
-        recent = self._recent
-        recent.append((now_us, np.concatenate([self._a, self._b])))
-        while len(recent) > 3 and now_us - recent[0][0] > _VELOCITY_SPAN_US:
-            recent.popleft()
-        if len(recent) < 3:
-            return
-        v = _slopes(np.array([r[0] for r in recent], np.float64), np.stack([r[1] for r in recent]))
-        self._va, self._vb = v[:8], v[8:]
+        if self._n_recent == len(self._recent_t):  # updates denser than ever: grow
+            self._recent_t = np.concatenate([self._recent_t, np.empty_like(self._recent_t)])
+            self._recent_ends = np.concatenate([self._recent_ends, self._recent_ends])
+        self._n_recent, v = _recent_velocity(
+            self._recent_t, self._recent_ends, self._n_recent, now_us, self._a, self._b
+        )
+        if self._n_recent >= 3:
+            self._va, self._vb = v[:8], v[8:]
