@@ -196,8 +196,12 @@ def test_tracker_mask_of_edges_far_off_the_view_is_empty():
         assert not triage._tiles.any()
 
 
-def test_triage_hands_the_tracker_the_events_on_marked_tiles_as_columns():
+@pytest.mark.parametrize("share", [1.0, 0.0])
+def test_triage_hands_the_tracker_the_events_on_marked_tiles_as_columns(share):
+    """The same events whether few lay near the edges last time (tested with a branch) or many
+    (without one)."""
     triage = EventTriage(DISTORTED.undistort_table, GAP_US, False)
+    triage._near_share = share
     triage.track_near(np.array([[0.0, 30.0]]), np.array([[63.0, 30.0]]), reach_px=2.0)
     rng = np.random.default_rng(3)
     n = 500

@@ -54,6 +54,11 @@ _SLOTS = 4
 """Times per pixel and polarity: the latest burst's start, its last event, and the first
 burst's start from each of the two marks on (16 bytes: an entry never straddles a cache line)."""
 
+_RARE_SHARE = 0.05
+"""Below this share of events near the edges, the dense pass tests each event's tile with a
+branch, which then predicts well (a still 1280x720 camera, ~1e-4 near: its triage took 0.31 ->
+0.26 CPU s on a 0.4 s N = 80 clip); above, without one (240x180 under motion, 0.5-0.95 near:
+the branch cost its triage 7%)."""
 _OFF_GRID = -(1 << 30)
 _BLOCK = 1024
 """Events whose on-grid ones are gathered at a time (their records stay in the L1 cache)."""
@@ -80,13 +85,15 @@ def _burst(pixels, e, at, epoch, gap_us, mark, mark2):
 
 
 @numba.njit(cache=True, nogil=True)
-def _triage(events, pixels, epoch, gap_us, tiles, grid_y, grid_x, dense, every, first, mark, mark2):
+def _triage(
+    events, pixels, epoch, gap_us, tiles, grid_y, grid_x, dense, every, first, mark, mark2, rare
+):
     """Update ``pixels[grid_y[y] + grid_x[x], polarity] = (latest burst's start, its last event,
     first burst's start from ``mark`` on, from ``mark2`` on)`` (the surface's pixels in one
     row-major axis) from the pixels on the stride's grid (``grid_*`` negative off it; ``dense``:
     every pixel is on it); return the indices of the events on the marked ``tiles``, of every
     ``every``-th event from index ``first`` on (``first < every``: a call continuing another's
-    thinning).
+    thinning). ``rare``: few events lie on the marked tiles (``_RARE_SHARE``).
 
     ``events`` is the structured chunk itself: numba reads each record's fields in one go, which
     runs a third faster than four strided field views. With a stride, whether an event lies on
@@ -104,8 +111,13 @@ def _triage(events, pixels, epoch, gap_us, tiles, grid_y, grid_x, dense, every, 
             countdown -= 1
             if countdown == 0:
                 countdown = every
-                selected[k] = i
-                k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
+                if rare:  # a branch that predicts well
+                    if tiles[e.y >> _SHIFT, e.x >> _SHIFT]:
+                        selected[k] = i
+                        k += 1
+                else:
+                    selected[k] = i
+                    k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
         return selected[:k]
     on_grid, at = np.empty(_BLOCK, np.int64), np.empty(_BLOCK, np.int32)
     for b0 in range(0, n, _BLOCK):
@@ -295,12 +307,15 @@ class EventTriage:
         epoch = self.epoch_us
         pixels = self.surface.reshape(-1, *self.surface.shape[2:])
         grid = (*self._grid, self.stride == 1)
+        rare = self._near_share < _RARE_SHARE
         marks = [min(max(m - epoch, _NEVER), 1 << 30) for m in self.marks_us]
         near, seen = [], 0
         for p in parts:
             first = -seen % every
             near.append(
-                _triage(p, pixels, epoch, self.gap_us, self._tiles, *grid, every, first, *marks)
+                _triage(
+                    p, pixels, epoch, self.gap_us, self._tiles, *grid, every, first, *marks, rare
+                )
             )
             seen += len(p)
         found = sum(len(i) for i in near)
