@@ -57,6 +57,8 @@ _VELOCITY_SPAN_US = 2000
 """The edges' image velocity is fitted to the poses of this recent span, and at least to the
 latest three (under motion the updates come every 0.25-1 ms: a pose's ~0.3 px of jitter then
 moves the velocity by ~0.2 px/ms)."""
+_BLOCK = 64
+"""Events whose distances to the edges ``_assign`` computes at a time."""
 _CARRY_US = 1000
 """An event is carried along its edge's motion for at most this long. A slot can hold an event
 for ``max_age_us`` (30 ms), and carried that long, the velocity's jitter would move it pixels:
@@ -239,73 +241,66 @@ def _assign(
     measured and binned. Stop after the first event that makes more than one indicator exceed
     half its gate (at or after ``due_us``), or at ``force_us`` once new events joined. Returns
     (index to resume from, whether it stopped)."""
-    # ``_off_line`` rules out most of the eight edges before the exact distance: first on the
-    # event as it came, with the band widened by the farthest its edge's motion can carry it
-    # (an edge ruled out there is beyond its band and gate once carried), then on the carried
-    # event for the gate and, only if no edge took the point, for the band.
+    # In blocks of events: first the distance of each event to each edge, edge by edge over
+    # the block (no branch, contiguous: the compiler vectorises it), then the binning in event
+    # order. Event by event, the eight distances' arithmetic and branches took two thirds of the
+    # time and ruling edges out first saved little; the blocks took 61 -> 42 ns per event.
     m = a.shape[0]
-    dx, dy = np.empty(m), np.empty(m)
-    gate_far2, band_far2, raw_far2, inv = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    ax, ay = a[:, 0].copy(), a[:, 1].copy()
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    vx, vy = va[:, 0].copy(), va[:, 1].copy()
+    dvx, dvy = vb[:, 0] - va[:, 0], vb[:, 1] - va[:, 1]  # the velocity varies linearly along it
+    inv = np.empty(m)
     late = np.zeros(m, np.bool_)
     for e in range(m):
-        dx[e], dy[e] = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
         inv[e] = _inv_len2(dx[e], dy[e])
-        gate_far2[e] = _line_far2(gate[e], dx[e], dy[e])
-        band_far2[e] = _line_far2(band[e], dx[e], dy[e])
-        speed = max(np.hypot(va[e, 0], va[e, 1]), np.hypot(vb[e, 0], vb[e, 1]))
-        raw_far2[e] = _line_far2(band[e] + speed * _CARRY_US, dx[e], dy[e])
         late[e] = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
     n_late = late.sum()  # kept up to date as events join, instead of recounted per event
-    dv = vb - va  # an edge's velocity varies linearly from ``va`` to ``vb`` along it
-    qx, qy = np.empty(m), np.empty(m)
-    reachable = np.empty(m, np.bool_)
-    for i in range(start, t.shape[0]):
-        dt = float(min(max(t[i] - ref_us, -_CARRY_US), _CARRY_US))
-        x, y = np.float64(xu[i]), np.float64(yu[i])
-        for e in range(m):  # the event as each edge's motion places it at ``ref_us``
-            reachable[e] = not _off_line(x, y, a[e, 0], a[e, 1], dx[e], dy[e], raw_far2[e])
-            if reachable[e]:
-                w = _along(x, y, a[e, 0], a[e, 1], dx[e], dy[e], inv[e])
-                qx[e] = x - (va[e, 0] + w * dv[e, 0]) * dt
-                qy[e] = y - (va[e, 1] + w * dv[e, 1]) * dt
-        near, on = False, False
-        for e in range(m):
-            px, py = qx[e], qy[e]
-            if not reachable[e] or _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], gate_far2[e]):
-                continue
-            d, w = _to_segment(px, py, a[e, 0], a[e, 1], dx[e], dy[e], inv[e])
-            near = near or d <= band[e]
-            if d > gate[e]:
-                continue
-            on = True
-            # Into bin s, replacing its older event in the count and distance sum. Written out
-            # here: as a helper taking the six arrays, numba kept a dozen atomic reference
-            # counts per call, which made this loop 2.5x slower.
-            s = min(int(w * cap[e]), cap[e] - 1)
-            if st[e, s] >= 0:
-                sum_d[e] -= sd[e, s]
-            else:
-                n_valid[e] += 1
-            sx[e, s], sy[e, s], st[e, s], sd[e, s] = px, py, t[i], d
-            sum_d[e] += d
-            now_late = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
-            n_late += now_late - late[e]
-            late[e] = now_late
-        for e in range(m):
+    x, y, dt = np.empty(_BLOCK), np.empty(_BLOCK), np.empty(_BLOCK)
+    qx, qy = np.empty((m, _BLOCK)), np.empty((m, _BLOCK))
+    along, dist = np.empty((m, _BLOCK)), np.empty((m, _BLOCK))
+    for b0 in range(start, t.shape[0], _BLOCK):
+        nb = min(_BLOCK, t.shape[0] - b0)
+        for j in range(nb):
+            x[j], y[j] = xu[b0 + j], yu[b0 + j]
+            dt[j] = min(max(t[b0 + j] - ref_us, -_CARRY_US), _CARRY_US)
+        for e in range(m):  # the events as the edge's motion places them at ``ref_us``
+            for j in range(nb):
+                w = _along(x[j], y[j], ax[e], ay[e], dx[e], dy[e], inv[e])
+                px = x[j] - (vx[e] + w * dvx[e]) * dt[j]
+                py = y[j] - (vy[e] + w * dvy[e]) * dt[j]
+                dist[e, j], along[e, j] = _to_segment(px, py, ax[e], ay[e], dx[e], dy[e], inv[e])
+                qx[e, j], qy[e, j] = px, py
+        for j in range(nb):
+            i = b0 + j
+            near, on = False, False
+            for e in range(m):
+                d = dist[e, j]
+                near |= d <= band[e]
+                if d > gate[e]:
+                    continue
+                on = True
+                # Into bin s, replacing its older event in the count and distance sum. Written
+                # out here: as a helper taking the six arrays, numba kept a dozen atomic
+                # reference counts per call, which made this loop 2.5x slower.
+                s = min(int(along[e, j] * cap[e]), cap[e] - 1)
+                if st[e, s] >= 0:
+                    sum_d[e] -= sd[e, s]
+                else:
+                    n_valid[e] += 1
+                sx[e, s], sy[e, s], st[e, s], sd[e, s] = qx[e, j], qy[e, j], t[i], d
+                sum_d[e] += d
+                now_late = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
+                n_late += now_late - late[e]
+                late[e] = now_late
             if near:
-                break
-            px, py = qx[e], qy[e]
-            if reachable[e] and not _off_line(px, py, a[e, 0], a[e, 1], dx[e], dy[e], band_far2[e]):
-                d, _ = _to_segment(px, py, a[e, 0], a[e, 1], dx[e], dy[e], inv[e])
-                near = d <= band[e]
-        if near:
-            fit[0] += 1
-            fit[1] += on
-        fit[2] += on
-        if t[i] >= force_us and fit[2] >= _FORCE_MIN_NEW:
-            return i + 1, True
-        if t[i] >= due_us and n_late > 1:
-            return i + 1, True
+                fit[0] += 1
+                fit[1] += on
+            fit[2] += on
+            if t[i] >= force_us and fit[2] >= _FORCE_MIN_NEW:
+                return i + 1, True
+            if t[i] >= due_us and n_late > 1:
+                return i + 1, True
     return t.shape[0], False
 
 
