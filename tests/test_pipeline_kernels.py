@@ -11,7 +11,7 @@ import itertools
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from receiver.camera import CameraModel
@@ -22,6 +22,7 @@ from receiver.pipeline.locate import Box, events_between, outline, quadrilateral
 from receiver.pipeline.pose import _residuals, project_ideal
 from receiver.pipeline.tracker import (
     _CARRY_US,
+    _VELOCITY_SPAN_US,
     EdgeTracker,
     _assign,
     _capture_points,
@@ -491,6 +492,30 @@ def _tracker_and_points(seed: int, n: int):
     pts = tracker._a[e] + along * (tracker._b[e] - tracker._a[e])
     pts += rng.normal(0, 1, (n, 2)) * rng.choice([0.5, 5.0, 30.0], (n, 1))
     return tracker, pts[:, 0], pts[:, 1]
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.lists(st.integers(1, 1500), min_size=1, max_size=60))
+@example(0, [10] * 40)  # 40 poses within the span: more than the buffer first holds
+def test_edge_velocity_is_the_slope_over_the_recent_poses(seed, gaps):
+    """The edges' ends move at the least-squares slope of their positions over the poses of
+    the last ``_VELOCITY_SPAN_US`` (at least the last three), however densely they came (its
+    buffer outgrows its first size); before three poses, at the flow it started with."""
+    tracker, _, _ = _tracker_and_points(seed, 1)
+    rng = np.random.default_rng(seed)
+    times, ends = [], []
+    for now in np.cumsum(gaps):
+        tracker._a, tracker._b = rng.normal(100, 30, (8, 2)), rng.normal(100, 30, (8, 2))
+        tracker._fit_velocity(int(now))
+        times.append(now)
+        ends.append(np.concatenate([tracker._a, tracker._b]))
+    if len(times) < 3:
+        assert not tracker._va.any() and not tracker._vb.any()
+        return
+    t = np.array(times, float)
+    keep = max(np.count_nonzero(t[-1] - t <= _VELOCITY_SPAN_US), 3)
+    slope = np.polyfit(t[-keep:], np.stack(ends[-keep:]).reshape(keep, -1), 1)[0]
+    assert np.allclose(np.concatenate([tracker._va, tracker._vb]).ravel(), slope)
 
 
 def _distance(px: float, py: float, a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
