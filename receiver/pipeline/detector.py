@@ -514,17 +514,30 @@ def _detect_moving(
         cell_px = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).mean() / geo.locator_side
     quad = fit_square(burst.image, quad, geo.locator_side, geo.ring) + origin
     check_quadrilateral(quad, params)
-    tb = round(burst.t_us)
-    if np.linalg.norm(burst.flow) <= params.max_square_flow_px_per_ms:
+    tb, speed = round(burst.t_us), float(np.linalg.norm(burst.flow))
+
+    def found(corners: np.ndarray, score: float, oriented: bool = True) -> Detection:
+        """The detection at corners ``corners`` (in the burst's box, canonical order)."""
+        corners = corners + origin
+        pose = _solve_pnp(corners, config)
+        return Detection(
+            corners,
+            pose,
+            tb,
+            burst.t_us,
+            config.blink_hz,
+            region.harmonic_ratio,
+            score,
+            burst.flow,
+            oriented=oriented,
+        )
+
+    if speed <= params.max_square_flow_px_per_ms:
         square, score = orient(quad - origin, burst.image, geo)
         if score >= params.min_square_orientation_score:
-            square = square + origin
-            T = _solve_pnp(square, config)
-            return Detection(
-                square, T, tb, burst.t_us, config.blink_hz, region.harmonic_ratio, score, burst.flow
-            )
+            return found(square, score)
     world = geo.locator_corners(config.marker_size_m)
-    half = int(np.clip(1e3 / max(np.linalg.norm(burst.flow), 1e-9), 250, _CAPTURE_HALF_US))
+    half = int(np.clip(1e3 / max(speed, 1e-9), 250, _CAPTURE_HALF_US))
     ring_events = to_columns(
         events_between(parts, tb - half, tb + half, most=_CAPTURE_SAMPLE),
         config.camera.undistort_table,
@@ -539,24 +552,12 @@ def _detect_moving(
     oriented, score = orient(corners - origin, burst.image, geo)
     clear = score >= params.min_orientation_score
     if not clear and (
-        agree < params.unoriented_edge_polarity
-        or np.linalg.norm(burst.flow) > params.max_unoriented_flow_px_per_ms
+        agree < params.unoriented_edge_polarity or speed > params.max_unoriented_flow_px_per_ms
     ):
         raise MarkerNotFound(
             f"spatial: no inner-locator 'L' found under motion (score {score:.2f}); check --cells"
         )
-    oriented = oriented + origin
-    return Detection(
-        oriented,
-        _solve_pnp(oriented, config),
-        tb,
-        burst.t_us,
-        config.blink_hz,
-        region.harmonic_ratio,
-        score,
-        burst.flow,
-        oriented=clear,
-    )
+    return found(oriented, score, oriented=clear)
 
 
 def _capture_ring(
