@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import reedsolo
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from occ.fec import PAPER_RS_K, ReedSolomon, paper_rs
@@ -74,6 +74,7 @@ def test_bad_code_parameters(n: int, k: int) -> None:
     seed=st.integers(0, 2**32 - 1),
     load=st.floats(0, 1.5),
 )
+@example(n=10, seed=15456, load=1.5)  # a budget of 12 erasures on 10 symbols
 def test_compiled_corrector_agrees_with_reedsolo(n: int, seed: int, load: float) -> None:
     """The numba corrector's twin is reedsolo: same answer within capacity, and beyond it never
     a claimed success that is not a codeword."""
@@ -83,7 +84,7 @@ def test_compiled_corrector_agrees_with_reedsolo(n: int, seed: int, load: float)
     data = rng.integers(0, 256, (1, rs.k), dtype=np.uint8)
     word = rs.encode(data)
     budget = int(load * rs.nsym)
-    erasures = int(rng.integers(0, budget + 1))
+    erasures = int(rng.integers(0, min(budget, n) + 1))  # no more erasures than symbols
     errors = min((budget - erasures) // 2 if load <= 1 else budget - erasures, n - erasures)
     pos = rng.choice(n, errors + erasures, replace=False)
     word[0, pos] ^= rng.integers(1, 256, pos.size, dtype=np.uint8)
