@@ -28,6 +28,11 @@ that puts the most events on the edges wins. The locator's "L" is then read thro
 that pose; where it is unclear but the fit is sound, the best guess of its turn goes on to the
 frames read after the burst, which must confirm it (``Detection.oriented``).
 
+Last resort: a camera drifting a fraction of a pixel per ms can mislead the flow search (the
+display's own OFF events line up at some faster flow) or be too slow for it, while it smears
+the still path's image of several blinks; the burst compensated by the sharpest slow flow
+(``locate.slow_flow``) then shows a square that may read the 'L' (``_detect_slow``).
+
 Cost: a still camera must not pay for the motion path. The blink map reads a sample of the
 window, the flow is scored on a few thousand OFF events in one compiled pass, and the per-event
 DFTs look their phases up in a table; a megapixel window of ten million events then costs about
@@ -413,23 +418,26 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
         region = blinking_region(parts, config)
     except MarkerNotFound:  # the still path says why in its own, finer terms
         return _detect_still(parts, config)
-    flow = burst_flow(parts, latest_burst_us(parts, region.burst_us, period), period, region.box)
-    if not np.any(flow):
-        return _detect_still(parts, config)
-    if not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
-        raise MarkerNotFound(
-            f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
-            f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
-        )
-    burst = compensated_burst(parts, region.burst_us, period, region.box, flow)
-    try:
-        return _detect_moving(parts, burst, region, config)
-    except MarkerNotFound as moving_miss:
+    tb = latest_burst_us(parts, region.burst_us, period)
+    flow = burst_flow(parts, tb, period, region.box)
+    paths = [lambda: _detect_still(parts, config)]
+    if np.any(flow):
+        if not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
+            raise MarkerNotFound(
+                f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
+                f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
+            )
+        burst = compensated_burst(parts, region.burst_us, period, region.box, flow)
         # A small marker's few OFF events can fake a flow: the still path gets its chance too.
+        paths.insert(0, lambda: _detect_moving(parts, burst, region, config))
+    paths.append(lambda: _detect_slow(parts, tb, region, config))
+    misses = []
+    for path in paths:
         try:
-            return _detect_still(parts, config)
-        except MarkerNotFound:
-            raise moving_miss from None
+            return path()
+        except MarkerNotFound as miss:
+            misses.append(miss)
+    raise misses[0]  # the preferred path's reason
 
 
 def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
@@ -501,41 +509,74 @@ def nearest_turn(found: Detection, prior: np.ndarray, config: ReceiverConfig) ->
     return replace(found, corners_px=turns[best], T_cam_world=poses[best], oriented=False)
 
 
+def _locator_square(burst: CompensatedBurst, config: ReceiverConfig) -> np.ndarray:
+    """(4, 2) corners, in the burst's box, of the square fitted to its locator."""
+    geo = config.geometry
+    # The blob's own size sets the cell size: a first guess from the box, then from its outline.
+    cell_px = min(burst.box.shape) / (2 * geo.locator_side)
+    for _ in range(2):
+        quad = quadrilateral(locator_blob(burst.image, cell_px))
+        cell_px = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).mean() / geo.locator_side
+    quad = fit_square(burst.image, quad, geo.locator_side, geo.ring)
+    check_quadrilateral(quad, config.detector)
+    return quad
+
+
+def _burst_detection(
+    corners: np.ndarray,
+    score: float,
+    burst: CompensatedBurst,
+    region: BlinkRegion,
+    config: ReceiverConfig,
+    oriented: bool = True,
+) -> Detection:
+    """The detection at ``corners`` (in the burst's box, canonical order), at the burst."""
+    corners = corners + np.array([burst.box.x0, burst.box.y0])
+    return Detection(
+        corners,
+        _solve_pnp(corners, config),
+        round(burst.t_us),
+        burst.t_us,
+        config.blink_hz,
+        region.harmonic_ratio,
+        score,
+        burst.flow,
+        oriented=oriented,
+    )
+
+
+def _detect_slow(
+    parts: list[np.ndarray], tb: float, region: BlinkRegion, config: ReceiverConfig
+) -> Detection:
+    """The square of the burst compensated by the sharpest slow flow (``locate.slow_flow``),
+    if it reads the 'L' clearly: the other paths' last resort when a slow drift misleads the
+    flow search (or is too slow for it to call the camera moving, while it smears the still
+    path's image of several blinks)."""
+    params = config.detector
+    period = 1e6 / config.blink_hz
+    flow = burst_flow(parts, tb, period, region.box, params.max_square_flow_px_per_ms)
+    if not np.any(flow):
+        raise MarkerNotFound("spatial: the camera is still, and the still path failed")
+    burst = compensated_burst(parts, region.burst_us, period, region.box, flow)
+    square, score = orient(_locator_square(burst, config), burst.image, config.geometry)
+    if score < params.min_square_orientation_score:
+        raise MarkerNotFound(f"spatial: no inner-locator 'L' found (score {score:.2f})")
+    return _burst_detection(square, score, burst, region, config)
+
+
 def _detect_moving(
     parts: list[np.ndarray], burst: CompensatedBurst, region: BlinkRegion, config: ReceiverConfig
 ) -> Detection:
     """Blob, fitted square, ring capture and "L", all at the compensated burst's time."""
     params, geo = config.detector, config.geometry
     origin = np.array([burst.box.x0, burst.box.y0])
-    # The blob's own size sets the cell size: a first guess from the box, then from its outline.
-    cell_px = min(burst.box.shape) / (2 * geo.locator_side)
-    for _ in range(2):
-        quad = quadrilateral(locator_blob(burst.image, cell_px))
-        cell_px = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).mean() / geo.locator_side
-    quad = fit_square(burst.image, quad, geo.locator_side, geo.ring) + origin
-    check_quadrilateral(quad, params)
+    quad = _locator_square(burst, config)
     tb, speed = round(burst.t_us), float(np.linalg.norm(burst.flow))
-
-    def found(corners: np.ndarray, score: float, oriented: bool = True) -> Detection:
-        """The detection at corners ``corners`` (in the burst's box, canonical order)."""
-        corners = corners + origin
-        pose = _solve_pnp(corners, config)
-        return Detection(
-            corners,
-            pose,
-            tb,
-            burst.t_us,
-            config.blink_hz,
-            region.harmonic_ratio,
-            score,
-            burst.flow,
-            oriented=oriented,
-        )
-
     if speed <= params.max_square_flow_px_per_ms:
-        square, score = orient(quad - origin, burst.image, geo)
+        square, score = orient(quad, burst.image, geo)
         if score >= params.min_square_orientation_score:
-            return found(square, score)
+            return _burst_detection(square, score, burst, region, config)
+    quad = quad + origin
     world = geo.locator_corners(config.marker_size_m)
     half = int(np.clip(1e3 / max(speed, 1e-9), 250, _CAPTURE_HALF_US))
     ring_events = to_columns(
@@ -557,7 +598,7 @@ def _detect_moving(
         raise MarkerNotFound(
             f"spatial: no inner-locator 'L' found under motion (score {score:.2f}); check --cells"
         )
-    return found(oriented, score, oriented=clear)
+    return _burst_detection(oriented, score, burst, region, config, oriented=clear)
 
 
 def _capture_ring(
