@@ -171,7 +171,10 @@ def write_report(rows: list[dict], flows: list[float], duration: float, command:
         "an edge only with the polarity the burst's image flow gives that edge; among the fits "
         "whose edge events agree with those polarities "
         f"(>= {config.detector.min_edge_polarity:g}; about +1 at the true pose) the one with the "
-        "most events on the edges wins, and without one the attempt fails. Then the 'L' read "
+        "most events on the edges wins, and without one the attempt fails (or, last, the square "
+        "of the burst compensated by the sharpest flow of at most "
+        f"{config.detector.max_square_flow_px_per_ms:g} px/ms stands if it reads the 'L' as "
+        "clearly). Then the 'L' read "
         "through that pose (where it is unclear, a fit agreeing at >= "
         f"{config.detector.unoriented_edge_polarity:g} at a flow of at most "
         f"{config.detector.max_unoriented_flow_px_per_ms:g} px/ms keeps its best guess of the "
@@ -196,7 +199,9 @@ def write_report(rows: list[dict], flows: list[float], duration: float, command:
         "9d1e5dd the fit ratio was judged while the camera nearly stood still, and dropped 2-7 "
         "right poses per path. Until commit 87e035a the still path also locked on the smeared "
         "image of a camera drifting too slowly for the burst to give a flow (seeds 3 and 4, 10 "
-        "and 21 cm off)."
+        "and 21 cm off); until 8c289ef (the last-resort slow square) seed 4 locked at 248 ms, "
+        "after nine attempts whose flow search lined the display's own OFF events up at 1-2 px/ms "
+        "or found no flow."
         "\n\n" + "\n".join(lines)
     )
     summary = [

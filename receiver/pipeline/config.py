@@ -80,7 +80,8 @@ class DetectorParams:
     the square the first locks came at 81-89 ms on four clips and 248 on the fifth, all
     within 5 cm (81-288 ms without, one 6 cm off and a quarter turn); a square's pose is up to
     5 cm off, and the tracker had taken it to within 0.1-1.8 cm 5 ms later. The same holds for
-    the square of the last-resort slow path (``detector._detect_slow``)."""
+    the square of the last-resort slow path (``detector._detect_slow``), which locked the fifth
+    at 81 ms too."""
     min_edge_polarity: float = 0.7
     """Under motion, the ring fitted at the burst must fire with the polarities the flow gives
     its edges (``detector.ring_support``) at least this well: +1.0 at the true pose on the
