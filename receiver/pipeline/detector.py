@@ -28,10 +28,13 @@ that puts the most events on the edges wins. The locator's "L" is then read thro
 that pose; where it is unclear but the fit is sound, the best guess of its turn goes on to the
 frames read after the burst, which must confirm it (``Detection.oriented``).
 
-Last resort: a camera drifting a fraction of a pixel per ms can mislead the flow search (the
+Last resorts: a camera drifting a fraction of a pixel per ms can mislead the flow search (the
 display's own OFF events line up at some faster flow) or be too slow for it, while it smears
 the still path's image of several blinks; the burst compensated by the sharpest slow flow
-(``locate.slow_flow``) then shows a square that may read the 'L' (``_detect_slow``).
+(``locate.slow_flow``) then shows a square that may read the 'L' (``_detect_slow``). Under
+motion, when nothing reads at the latest burst, the burst a blink period before it gets the
+moving and slow paths too: a hand-held camera's turn or jolt smears one burst, not every one,
+and the lock tracks the older burst's pose through the buffered events all the same.
 
 Cost: a still camera must not pay for the motion path. The blink map reads a sample of the
 window, the flow is scored on a few thousand OFF events in one compiled pass, and the per-event
@@ -52,6 +55,7 @@ from occ.marker import MarkerGeometry
 from receiver.pipeline.buffer import EventColumns, first_at, to_columns
 from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.locate import (
+    HALF_WINDOW,
     Box,
     CompensatedBurst,
     MarkerNotFound,
@@ -420,23 +424,33 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
         return _detect_still(parts, config)
     tb = latest_burst_us(parts, region.burst_us, period)
     flow = burst_flow(parts, tb, period, region.box)
-    paths = [lambda: _detect_still(parts, config)]
-    if np.any(flow):
-        if not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
-            raise MarkerNotFound(
-                f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
-                f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
-            )
-        burst = compensated_burst(parts, region.burst_us, period, region.box, flow)
-        # A small marker's few OFF events can fake a flow: the still path gets its chance too.
-        paths.insert(0, lambda: _detect_moving(parts, burst, region, config))
-    paths.append(lambda: _detect_slow(parts, tb, region, config))
+    if np.any(flow) and not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
+        raise MarkerNotFound(
+            f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
+            f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
+        )
+    # A small marker's few OFF events can fake a flow: the still path gets its chance too.
+    paths = [
+        lambda: _detect_moving(parts, tb, flow, region, config),
+        lambda: _detect_still(parts, config),
+        lambda: _detect_slow(parts, tb, region, config),
+    ]
+    # Under motion the latest burst is often unreadable while the one before reads clearly.
+    before = tb - period
+    if np.any(flow) and before - HALF_WINDOW * period >= parts[0]["t"][0]:
+        paths += [
+            lambda: _detect_moving(parts, before, None, region, config),
+            lambda: _detect_slow(parts, before, region, config),
+        ]
     misses = []
     for path in paths:
         try:
-            return path()
+            found = path()
         except MarkerNotFound as miss:
             misses.append(miss)
+            continue
+        if found is not None:
+            return found
     raise misses[0]  # the preferred path's reason
 
 
@@ -547,7 +561,7 @@ def _burst_detection(
 
 def _detect_slow(
     parts: list[np.ndarray], tb: float, region: BlinkRegion, config: ReceiverConfig
-) -> Detection:
+) -> Detection | None:
     """The square of the burst compensated by the sharpest slow flow (``locate.slow_flow``),
     if it reads the 'L' clearly: the other paths' last resort when a slow drift misleads the
     flow search (or is too slow for it to call the camera moving, while it smears the still
@@ -556,8 +570,8 @@ def _detect_slow(
     period = 1e6 / config.blink_hz
     flow = burst_flow(parts, tb, period, region.box, params.max_square_flow_px_per_ms)
     if not np.any(flow):
-        raise MarkerNotFound("spatial: the camera is still, and the still path failed")
-    burst = compensated_burst(parts, region.burst_us, period, region.box, flow)
+        return None  # the still path's case
+    burst = compensated_burst(parts, tb, period, region.box, flow)
     square, score = orient(_locator_square(burst, config), burst.image, config.geometry)
     if score < params.min_square_orientation_score:
         raise MarkerNotFound(f"spatial: no inner-locator 'L' found (score {score:.2f})")
@@ -565,9 +579,20 @@ def _detect_slow(
 
 
 def _detect_moving(
-    parts: list[np.ndarray], burst: CompensatedBurst, region: BlinkRegion, config: ReceiverConfig
-) -> Detection:
-    """Blob, fitted square, ring capture and "L", all at the compensated burst's time."""
+    parts: list[np.ndarray],
+    tb: float,
+    flow: np.ndarray | None,
+    region: BlinkRegion,
+    config: ReceiverConfig,
+) -> Detection | None:
+    """Blob, fitted square, ring capture and "L" of the burst at ``tb`` compensated along its
+    ``flow`` (measured if None), all at the burst's time; None if the burst gives no flow."""
+    period = 1e6 / config.blink_hz
+    if flow is None:
+        flow = burst_flow(parts, tb, period, region.box)
+    if not np.any(flow):
+        return None
+    burst = compensated_burst(parts, tb, period, region.box, flow)
     params, geo = config.detector, config.geometry
     origin = np.array([burst.box.x0, burst.box.y0])
     quad = _locator_square(burst, config)

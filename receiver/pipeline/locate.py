@@ -282,16 +282,16 @@ def burst_flow(
 
 def compensated_burst(
     parts: list[np.ndarray],
-    burst_us: float,
+    tb: float,
     period_us: float,
     box: Box,
     flow: np.ndarray | None = None,
 ) -> CompensatedBurst:
-    """The latest burst whose following half period is in ``parts``: pixels of ``box`` with
-    more ON events in the burst than in either blank frame beside it, all warped to the burst
-    time along ``flow`` (measured by ``burst_flow`` when not given)."""
+    """The burst at ``tb`` (``latest_burst_us``, or whole periods before it): pixels of ``box``
+    with more ON events in the burst than in either blank frame beside it, all warped to the
+    burst time along ``flow`` (measured by ``burst_flow`` when not given). A blank frame before
+    the first event counts as empty."""
     half = HALF_WINDOW * period_us
-    tb = latest_burst_us(parts, burst_us, period_us)
     if flow is None:
         flow = burst_flow(parts, tb, period_us, box)
     blank = period_us / 2  # the blank frames' switches, where only motion fires ON
