@@ -453,14 +453,19 @@ def test_a_camera_drifting_too_slowly_for_a_flow_is_not_locked_on_its_smeared_im
     assert drifting["err"].max() <= WRONG_LOCK_M
 
 
+def _assert_locked_right_within_100_ms(run: dict) -> None:
+    stats = run["stats"]
+    assert stats.lock_times_us, dict(stats.detection_failures)
+    assert stats.lock_times_us[0] - stats.first_event_us <= 100_000
+    assert run["err"][0] <= FIRST_POSE_MAX_M
+    assert run["err"].max() <= WRONG_LOCK_M
+
+
 def test_a_slowly_drifting_camera_locks_on_its_burst_square_within_100_ms(drifting):
     """The slow ring fires too little for the capture onto its edges, which settled a ring
     width off and hid the 'L' (first lock at 158 ms); the burst's square reads it clearly
     (``DetectorParams.max_square_flow_px_per_ms``)."""
-    stats = drifting["stats"]
-    assert stats.lock_times_us, dict(stats.detection_failures)
-    assert stats.lock_times_us[0] - stats.first_event_us <= 100_000
-    assert drifting["err"][0] <= FIRST_POSE_MAX_M
+    _assert_locked_right_within_100_ms(drifting)
 
 
 def test_a_drift_that_misleads_the_flow_search_locks_on_the_slow_square_within_100_ms():
@@ -468,12 +473,7 @@ def test_a_drift_that_misleads_the_flow_search_locks_on_the_slow_square_within_1
     lined up best at flows of 1-2 px/ms, or the burst gave none and the still path's image was
     smeared; nine attempts failed and the first lock came at 248 ms. The square of the burst
     compensated by the sharpest slow flow (``detector._detect_slow``) reads the 'L' at once."""
-    run = _run(0.25, 0.2, seed=4)
-    stats = run["stats"]
-    assert stats.lock_times_us, dict(stats.detection_failures)
-    assert stats.lock_times_us[0] - stats.first_event_us <= 100_000
-    assert run["err"][0] <= FIRST_POSE_MAX_M
-    assert run["err"].max() <= WRONG_LOCK_M
+    _assert_locked_right_within_100_ms(_run(0.25, 0.2, seed=4))
 
 
 def test_when_the_latest_burst_is_smeared_the_one_before_gives_the_lock():
@@ -482,12 +482,7 @@ def test_when_the_latest_burst_is_smeared_the_one_before_gives_the_lock():
     and with its postponed check the first lock came at 123 ms. The burst a blink before
     reads, and its frames after it are already buffered: the lock stands at the first
     attempt."""
-    run = _run(1.0, 0.2, seed=4)
-    stats = run["stats"]
-    assert stats.lock_times_us, dict(stats.detection_failures)
-    assert stats.lock_times_us[0] - stats.first_event_us <= 100_000
-    assert run["err"][0] <= FIRST_POSE_MAX_M
-    assert run["err"].max() <= WRONG_LOCK_M
+    _assert_locked_right_within_100_ms(_run(1.0, 0.2, seed=4))
 
 
 def _turned(found: Detection, config: ReceiverConfig, turns: int) -> Detection:
