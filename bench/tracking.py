@@ -174,7 +174,8 @@ def write_report(rows: list[dict], flows: list[float], duration: float, command:
         "most events on the edges wins, and without one the attempt fails (or, last, the square "
         "of the burst compensated by the sharpest flow of at most "
         f"{config.detector.max_square_flow_px_per_ms:g} px/ms stands if it reads the 'L' as "
-        "clearly). Then the 'L' read "
+        "clearly; and when nothing reads at the latest burst, the one a blink before it gets "
+        "the same chances). Then the 'L' read "
         "through that pose (where it is unclear, a fit agreeing at >= "
         f"{config.detector.unoriented_edge_polarity:g} at a flow of at most "
         f"{config.detector.max_unoriented_flow_px_per_ms:g} px/ms keeps its best guess of the "
@@ -201,7 +202,8 @@ def write_report(rows: list[dict], flows: list[float], duration: float, command:
         "image of a camera drifting too slowly for the burst to give a flow (seeds 3 and 4, 10 "
         "and 21 cm off); until 8c289ef (the last-resort slow square) seed 4 locked at 248 ms, "
         "after nine attempts whose flow search lined the display's own OFF events up at 1-2 px/ms "
-        "or found no flow."
+        "or found no flow; until 6ab83a7 (the burst before) seed 4 at 1 px/ms locked at 123 ms, "
+        "its first attempt's burst smeared by a turn about the camera's axis."
         "\n\n" + "\n".join(lines)
     )
     summary = [
