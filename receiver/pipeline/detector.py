@@ -559,6 +559,24 @@ def _burst_detection(
     )
 
 
+def _moving_burst(
+    parts: list[np.ndarray],
+    tb: float,
+    region: BlinkRegion,
+    config: ReceiverConfig,
+    flow: np.ndarray | None = None,
+    most_px_per_ms: float | None = None,
+) -> CompensatedBurst | None:
+    """The burst at ``tb`` compensated along ``flow`` (when None, measured: ``burst_flow``, up
+    to ``most_px_per_ms`` if given); None if the camera looks still there."""
+    period = 1e6 / config.blink_hz
+    if flow is None:
+        flow = burst_flow(parts, tb, period, region.box, most_px_per_ms)
+    if not np.any(flow):
+        return None
+    return compensated_burst(parts, tb, period, region.box, flow)
+
+
 def _detect_slow(
     parts: list[np.ndarray], tb: float, region: BlinkRegion, config: ReceiverConfig
 ) -> Detection | None:
@@ -567,11 +585,10 @@ def _detect_slow(
     flow search (or is too slow for it to call the camera moving, while it smears the still
     path's image of several blinks)."""
     params = config.detector
-    period = 1e6 / config.blink_hz
-    flow = burst_flow(parts, tb, period, region.box, params.max_square_flow_px_per_ms)
-    if not np.any(flow):
+    slow = params.max_square_flow_px_per_ms
+    burst = _moving_burst(parts, tb, region, config, most_px_per_ms=slow)
+    if burst is None:
         return None  # the still path's case
-    burst = compensated_burst(parts, tb, period, region.box, flow)
     square, score = orient(_locator_square(burst, config), burst.image, config.geometry)
     if score < params.min_square_orientation_score:
         raise MarkerNotFound(f"spatial: no inner-locator 'L' found (score {score:.2f})")
@@ -587,16 +604,13 @@ def _detect_moving(
 ) -> Detection | None:
     """Blob, fitted square, ring capture and "L" of the burst at ``tb`` compensated along its
     ``flow`` (measured if None), all at the burst's time; None if the burst gives no flow."""
-    period = 1e6 / config.blink_hz
-    if flow is None:
-        flow = burst_flow(parts, tb, period, region.box)
-    if not np.any(flow):
+    burst = _moving_burst(parts, tb, region, config, flow)
+    if burst is None:
         return None
-    burst = compensated_burst(parts, tb, period, region.box, flow)
     params, geo = config.detector, config.geometry
     origin = np.array([burst.box.x0, burst.box.y0])
     quad = _locator_square(burst, config)
-    tb, speed = round(burst.t_us), float(np.linalg.norm(burst.flow))
+    t_us, speed = round(tb), float(np.linalg.norm(burst.flow))
     if speed <= params.max_square_flow_px_per_ms:
         square, score = orient(quad, burst.image, geo)
         if score >= params.min_square_orientation_score:
@@ -605,10 +619,10 @@ def _detect_moving(
     world = geo.locator_corners(config.marker_size_m)
     half = int(np.clip(1e3 / max(speed, 1e-9), 250, _CAPTURE_HALF_US))
     ring_events = to_columns(
-        events_between(parts, tb - half, tb + half, most=_CAPTURE_SAMPLE),
+        events_between(parts, t_us - half, t_us + half, most=_CAPTURE_SAMPLE),
         config.camera.undistort_table,
     )
-    T, agree = _capture_ring(ring_events, quad, tb, burst.flow, config)
+    T, agree = _capture_ring(ring_events, quad, t_us, burst.flow, config)
     if agree < params.min_edge_polarity:
         raise MarkerNotFound(
             f"spatial: the ring's edges fire against the motion at the fitted pose (polarity "
