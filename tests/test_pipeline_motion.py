@@ -34,6 +34,7 @@ from receiver.pipeline.locate import (
     Box,
     MarkerNotFound,
     compensated_burst,
+    densest_burst_us,
     events_between,
     fit_square,
     latest_burst_us,
@@ -191,6 +192,23 @@ def test_compensated_burst_outlines_the_blinking_square_not_the_swept_ring(flow)
     truth = np.array([[90, 60], [150, 60], [150, 120], [90, 120]]) + move
     nearest = np.linalg.norm(truth[:, None] - quad[None], axis=2).min(axis=1)
     assert nearest.max() < 4, quad.round(1)  # every corner found (orientation is not read here)
+
+
+def test_densest_burst_finds_the_burst_the_phase_places_off():
+    # A burst of ON events over 12 ms from 100 ms on (the rows' scan-out), amid ON events at
+    # every time (moving edges) and OFF events (not counted); the phase says 104.5 ms.
+    rng = np.random.default_rng(0)
+    burst = rng.uniform(100_000, 112_000, 4000)
+    edges = rng.uniform(60_000, 150_000, 4000)
+    t = np.concatenate([burst, edges, rng.uniform(100_000, 112_000, 4000)])
+    p = np.r_[np.ones(8000), -np.ones(4000)]
+    order = np.argsort(t)
+    ev = make_events(t[order].astype(np.int64), np.full(len(t), 50), np.full(len(t), 60), p[order])
+    found = densest_burst_us([ev], 104_500.0, PERIOD_US, SENSOR)
+    # The burst's middle, to within the slack of a 13.3 ms window around a 12 ms burst.
+    assert abs(found - 106_000) < 800, found
+    # Too few ON events near the phase's time: the phase stands.
+    assert densest_burst_us([ev[:50]], 104_500.0, PERIOD_US, SENSOR) == 104_500.0
 
 
 def test_an_image_without_a_blob_is_a_clear_miss():
@@ -483,6 +501,14 @@ def test_when_the_latest_burst_is_smeared_the_one_before_gives_the_lock():
     reads, and its frames after it are already buffered: the lock stands at the first
     attempt."""
     _assert_locked_right_within_100_ms(_run(1.0, 0.2, seed=4))
+
+
+def test_a_burst_the_phase_places_off_is_read_where_its_events_lie():
+    """Seed 1 at 1 px/ms: the blink map's phase put the first attempts' burst windows a
+    millisecond or two off the bursts, none read, and the first lock came at 153 ms. The window
+    where the latest burst's ON events lie densest (``locate.densest_burst_us``) reads at the
+    first attempt."""
+    _assert_locked_right_within_100_ms(_run(1.0, 0.2, seed=1))
 
 
 def _turned(found: Detection, config: ReceiverConfig, turns: int) -> Detection:

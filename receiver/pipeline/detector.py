@@ -34,7 +34,10 @@ the still path's image of several blinks; the burst compensated by the sharpest 
 (``locate.slow_flow``) then shows a square that may read the 'L' (``_detect_slow``). Under
 motion, when nothing reads at the latest burst, the burst a blink period before it gets the
 moving and slow paths too: a hand-held camera's turn or jolt smears one burst, not every one,
-and the lock tracks the older burst's pose through the buffered events all the same.
+and the lock tracks the older burst's pose through the buffered events all the same. Right
+after the phase's time, the moving path also reads the latest burst where its ON events lie densest
+(``locate.densest_burst_us``): the blink map's phase averages the window's bursts with the ON
+events that moving edges fire at every phase, and can place the burst a millisecond or two off.
 
 Cost: a still camera must not pay for the motion path. The blink map reads a sample of the
 window, the flow is scored on a few thousand OFF events in one compiled pass, and the per-event
@@ -62,6 +65,7 @@ from receiver.pipeline.locate import (
     burst_flow,
     check_quadrilateral,
     compensated_burst,
+    densest_burst_us,
     events_between,
     fit_square,
     latest_burst_us,
@@ -429,9 +433,14 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
             f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
             f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
         )
+    paths = [lambda: _detect_moving(parts, tb, flow, region, config)]
+    # Under motion the phase's time can miss the latest burst's own by a millisecond or two: the
+    # burst window where its ON events lie densest gets the moving path too.
+    tm = densest_burst_us(parts, tb, period, region.box) if np.any(flow) else tb
+    if tm != tb and tm + period / 2 + HALF_WINDOW * period <= parts[-1]["t"][-1]:
+        paths.append(lambda: _detect_moving(parts, tm, None, region, config))
     # A small marker's few OFF events can fake a flow: the still path gets its chance too.
-    paths = [
-        lambda: _detect_moving(parts, tb, flow, region, config),
+    paths += [
         lambda: _detect_still(parts, config),
         lambda: _detect_slow(parts, tb, region, config),
     ]

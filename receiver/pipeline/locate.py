@@ -242,6 +242,20 @@ def latest_burst_us(parts: list[np.ndarray], burst_us: float, period_us: float) 
     return burst_us + np.floor((t_end - period_us / 2 - half - burst_us) / period_us) * period_us
 
 
+def densest_burst_us(parts: list[np.ndarray], tb: float, period_us: float, box: Box) -> float:
+    """The middle of the burst window (``HALF_WINDOW`` periods either side) that holds the most
+    ON events of ``box`` within a quarter period of ``tb``: the burst as its own events place
+    it. The blink map's phase (``tb`` plus whole periods) averages the window's bursts and the
+    ON events that a moving camera's edges fire at every phase; the window it puts around the
+    latest burst can miss that burst's start by a millisecond or two."""
+    width = 2 * HALF_WINDOW * period_us
+    t = events_between(parts, tb - period_us / 4, tb + period_us / 4, polarity=1, box=box)["t"]
+    if len(t) < 100:
+        return tb
+    inside = np.searchsorted(t, t + width) - np.arange(len(t))  # events of the window from t[i]
+    return float(t[int(np.argmax(inside))] + width / 2)
+
+
 def slow_flow(events: np.ndarray, t_ref: float, box: Box, most_px_per_ms: float) -> np.ndarray:
     """The flow of at most ``most_px_per_ms`` that makes ``events`` sharpest when warped to
     ``t_ref``, on a grid of ``_SLOW_STEP``: a second opinion where ``motion_flow`` is misled.
