@@ -161,7 +161,8 @@ def write_report(rows: list[dict], flows: list[float], duration: float, command:
         f"{config.pose_smoothing_us / 1000:g} ms of it (`pose_smoothing_us`). Targets: first "
         "lock within 300 ms, first pose within 5 cm, ATE <= 1 cm, every message decoded, "
         ">= 1 kHz poses. "
-        "Detection under motion: a blink map of 8 px tiles, one motion-compensated burst, a fitted "
+        "Detection under motion: a blink map of 8 px tiles, one motion-compensated burst (read at "
+        "the map's phase and, failing that, where its ON events lie densest), a fitted "
         "locator square. Up to "
         f"{config.detector.max_square_flow_px_per_ms:g} px/ms of flow the square gives the pose "
         "itself if it reads the 'L' at >= "
@@ -203,7 +204,9 @@ def write_report(rows: list[dict], flows: list[float], duration: float, command:
         "and 21 cm off); until 8c289ef (the last-resort slow square) seed 4 locked at 248 ms, "
         "after nine attempts whose flow search lined the display's own OFF events up at 1-2 px/ms "
         "or found no flow; until 6ab83a7 (the burst before) seed 4 at 1 px/ms locked at 123 ms, "
-        "its first attempt's burst smeared by a turn about the camera's axis."
+        "its first attempt's burst smeared by a turn about the camera's axis; until 199d71c "
+        "(the densest burst window) seed 1 at 1 px/ms locked at 153 ms, the map's phase having "
+        "put its first bursts' windows a millisecond or two off."
         "\n\n" + "\n".join(lines)
     )
     summary = [
