@@ -434,11 +434,8 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
             f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
         )
     paths = [lambda: _detect_moving(parts, tb, flow, region, config)]
-    # Under motion the phase's time can miss the latest burst's own by a millisecond or two: the
-    # burst window where its ON events lie densest gets the moving path too.
-    tm = densest_burst_us(parts, tb, period, region.box) if np.any(flow) else tb
-    if tm != tb and tm + period / 2 + HALF_WINDOW * period <= parts[-1]["t"][-1]:
-        paths.append(lambda: _detect_moving(parts, tm, None, region, config))
+    if np.any(flow):
+        paths.append(lambda: _detect_densest(parts, tb, region, config))
     # A small marker's few OFF events can fake a flow: the still path gets its chance too.
     paths += [
         lambda: _detect_still(parts, config),
@@ -584,6 +581,20 @@ def _moving_burst(
     if not np.any(flow):
         return None
     return compensated_burst(parts, tb, period, region.box, flow)
+
+
+def _detect_densest(
+    parts: list[np.ndarray], tb: float, region: BlinkRegion, config: ReceiverConfig
+) -> Detection | None:
+    """The moving path at the latest burst, read where its ON events lie densest
+    (``locate.densest_burst_us``) rather than at the phase's time ``tb``, which under motion can
+    miss it by a millisecond or two; None if that is ``tb`` itself, or if the blank frame after
+    it is not in the window yet."""
+    period = 1e6 / config.blink_hz
+    tm = densest_burst_us(parts, tb, period, region.box)
+    if tm == tb or tm + period / 2 + HALF_WINDOW * period > parts[-1]["t"][-1]:
+        return None
+    return _detect_moving(parts, tm, None, region, config)
 
 
 def _detect_slow(
