@@ -278,6 +278,26 @@ def test_the_tile_lookups_thin_to_the_budget_from_the_share_near_the_edges():
     assert second["t"][0] - events["t"][0] < 20 and events["t"][-1] - second["t"][-1] < 20
 
 
+@pytest.mark.parametrize("stride", [1, 2])
+@pytest.mark.parametrize(("share", "every"), [(0.002, 4), (0.0, 1), (0.05, 1)])
+def test_a_still_cameras_few_events_near_the_edges_are_looked_up_at_every_fourth(
+    share, every, stride
+):
+    """When few events lay near the edges last time (a still camera: its tracker waits for
+    motion), only every fourth event is looked up in the tiles, however large the budget; when
+    none did, or enough, every one is. The surfaces take every event either way."""
+    events = _stream(np.random.default_rng(7), 3000)
+    sparse, whole = (EventTriage(DISTORTED.undistort_table, GAP_US, False) for _ in range(2))
+    for triage in (sparse, whole):
+        triage.reset(0, stride)
+        triage._tiles[:] = True
+    sparse._near_share = share
+    near = sparse(events)
+    assert np.array_equal(near["t"], events["t"][::every])
+    assert np.array_equal(near["xu"], whole(events)["xu"][::every])
+    assert np.array_equal(sparse.surface, whole.surface)
+
+
 def test_columns_of_selected_events_match_columns_of_their_copy():
     events = make_events([0, 10, 20, 30], [1, 2, 3, 4], [4, 5, 6, 7], [1, -1, 1, -1])
     index = np.array([3, 0, 2])

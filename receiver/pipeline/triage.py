@@ -59,6 +59,13 @@ _RARE_SHARE = 0.05
 branch, which then predicts well (a still 1280x720 camera, ~1e-4 near: its triage took 0.31 ->
 0.26 CPU s on a 0.4 s N = 80 clip); above, without one (240x180 under motion, 0.5-0.95 near:
 the branch cost its triage 7%)."""
+_STILL_SHARE = 0.01
+_STILL_EVERY = 4
+"""Below this share of events near the edges (but above none), only every ``_STILL_EVERY``-th
+event at least is looked up in the tiles. The camera then stands still (1280x720: at most
+0.005 still, 0.05-0.3 hand-held; 240x180 sees the blinking cells near the edges, 0.5-0.9) and
+the tracker waits for motion, which a quarter of the events near the edges shows as well as
+all of them do: the still N = 80 1280x720 camera's triage took a seventh less time."""
 _OFF_GRID = -(1 << 30)
 _BLOCK = 1024
 """Events whose on-grid ones are gathered at a time (their records stay in the L1 cache)."""
@@ -97,6 +104,23 @@ def _note(pixels, at, d, ti, gap_us, mark, mark2):
 
 
 @numba.njit(cache=True, nogil=True)
+def _pick(events, start, stop, every, tiles, rare, selected, k):
+    """Append to ``selected[:k]`` the indices ``start``, ``start + every``, ... before ``stop``
+    of the events on marked tiles; return the new count. ``rare``: few are, and a branch
+    predicts well; otherwise none."""
+    for i in range(start, stop, every):
+        e = events[i]
+        if rare:
+            if tiles[e.y >> _SHIFT, e.x >> _SHIFT]:
+                selected[k] = i
+                k += 1
+        else:
+            selected[k] = i
+            k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
 def _triage(
     events, pixels, epoch, gap_us, tiles, grid_y, grid_x, dense, every, first, mark, mark2, rare
 ):
@@ -128,21 +152,10 @@ def _triage(
                     selected[k] = i
                     k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
             return selected[:k]
-        countdown = first + 1
         for i in range(n):
             e = events[i]
             _burst(pixels, e, np.int64(e.y) * width + e.x, epoch, gap_us, mark, mark2)
-            countdown -= 1
-            if countdown == 0:
-                countdown = every
-                if rare:  # a branch that predicts well
-                    if tiles[e.y >> _SHIFT, e.x >> _SHIFT]:
-                        selected[k] = i
-                        k += 1
-                else:
-                    selected[k] = i
-                    k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
-        return selected[:k]
+        return selected[: _pick(events, first, n, every, tiles, rare, selected, 0)]
     on_grid, at = np.empty(_BLOCK, np.int64), np.empty(_BLOCK, np.int32)
     for b0 in range(0, n, _BLOCK):
         b1 = min(b0 + _BLOCK, n)
@@ -154,10 +167,7 @@ def _triage(
             g += at[g] >= 0
         for j in range(g):
             _burst(pixels, events[on_grid[j]], at[j], epoch, gap_us, mark, mark2)
-        for i in range(b0 + (first - b0) % every, b1, every):
-            e = events[i]
-            selected[k] = i
-            k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
+        k = _pick(events, b0 + (first - b0) % every, b1, every, tiles, rare, selected, k)
     return selected[:k]
 
 
@@ -327,7 +337,8 @@ class EventTriage:
         most = n if per_ms is None else max(int(per_ms * (t_last - t_first + 1) / 1000), 1)
         # Only every k-th event is looked up in the tiles, k from the share that lay near the
         # edges last time: at 140 M events a second the tracker keeps one near event in ten.
-        every = max(-int(-n * self._near_share // most), 1)
+        share = self._near_share
+        every = max(-int(-n * share // most), _STILL_EVERY if 0 < share < _STILL_SHARE else 1)
         epoch = self.epoch_us
         pixels = self.surface.reshape(-1, *self.surface.shape[2:])
         grid = (*self._grid, self.stride == 1)
