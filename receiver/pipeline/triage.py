@@ -138,20 +138,8 @@ def _triage(
     n = events.shape[0]
     selected = np.empty(-(-n // every), np.int64)  # pages are touched only as far as written
     k = 0
-    if dense:  # one pass (the blocks measured slower here, and so did the tables)
+    if dense:  # the bursts in one pass (blocks measured slower here, and so did the tables)
         width = grid_x.shape[0]
-        if every == 1:  # the picks in the same pass (a second one measured slower here)
-            for i in range(n):
-                e = events[i]
-                _burst(pixels, e, np.int64(e.y) * width + e.x, epoch, gap_us, mark, mark2)
-                if rare:
-                    if tiles[e.y >> _SHIFT, e.x >> _SHIFT]:
-                        selected[k] = i
-                        k += 1
-                else:
-                    selected[k] = i
-                    k += tiles[e.y >> _SHIFT, e.x >> _SHIFT]
-            return selected[:k]
         for i in range(n):
             e = events[i]
             _burst(pixels, e, np.int64(e.y) * width + e.x, epoch, gap_us, mark, mark2)
