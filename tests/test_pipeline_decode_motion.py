@@ -120,7 +120,7 @@ def _decode(flow_px_per_ms: float, duration_s: float, true_pose: bool = False, s
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
     rx = Receiver(hand_held_config())
     if true_pose:
-        rx.pose_at = lambda t_us: invert(rec.pose_at(np.array([t_us]))[0])
+        rx.pose_at = lambda t_us: invert(rec.pose_at(t_us))
     log = DecodeLog(rx, FrameTruth(scene.encoder, scene.display.refresh_hz))
     for chunk in rec:
         log.add(rx.push(chunk))

@@ -26,6 +26,11 @@ def _pose(distance_m: float = 0.6, tilt_deg: float = 10.0) -> np.ndarray:
     return invert(look_at(np.array([size / 2, size / 2, 0.0]), distance_m, tilt_deg, 5.0, 3.0))
 
 
+def _still(T: np.ndarray):
+    """``CellReader.read``'s ``pose_at`` for a camera that holds pose ``T``."""
+    return lambda t_us: np.broadcast_to(T, (len(t_us), 4, 4))
+
+
 def _white_bursts(
     reader: CellReader, T_cam_world: np.ndarray, cells: np.ndarray, m: int = 0
 ) -> EventColumns:
@@ -72,7 +77,7 @@ def test_a_still_frame_reads_exactly_with_full_confidence():
     T = _pose()
     payload = np.random.default_rng(1).integers(0, 2, (16, 16)).astype(bool)
     read = reader.read(
-        0, _white_bursts(reader, T, locator_block(reader.config.geometry, payload)), lambda _: T
+        0, _white_bursts(reader, T, locator_block(reader.config.geometry, payload)), _still(T)
     )
     assert np.array_equal(read.bits, payload)
     assert read.confidence.min() == 1.0 and read.locator_score == pytest.approx(1.0)
@@ -134,7 +139,7 @@ def test_a_frame_read_before_any_burst_timed_the_clock_is_not_seen():
     T = _pose()
     payload = np.random.default_rng(4).integers(0, 2, (16, 16)).astype(bool)
     cells = locator_block(reader.config.geometry, payload)
-    untimed = reader.read(-1, _white_bursts(reader, T, cells, m=-1), lambda _: T)
+    untimed = reader.read(-1, _white_bursts(reader, T, cells, m=-1), _still(T))
     assert untimed.locator_score == 0.0
-    timed = reader.read(0, _white_bursts(reader, T, cells, m=0), lambda _: T)
+    timed = reader.read(0, _white_bursts(reader, T, cells, m=0), _still(T))
     assert timed.locator_score > 0.9 and np.array_equal(timed.bits, payload)

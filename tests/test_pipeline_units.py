@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from occ.marker import MarkerGeometry
 from occ.stream import StreamEncoder
@@ -24,7 +24,7 @@ from receiver.pipeline.detector import (
 )
 from receiver.pipeline.filters import EventFilter
 from receiver.pipeline.metrics import pose_errors, umeyama
-from receiver.pipeline.pose import project_ideal, refine_pose
+from receiver.pipeline.pose import PoseHistory, project_ideal, refine_pose
 from receiver.pipeline.report import FrameTruth
 from receiver.pipeline.triage import EventTriage
 from receiver.poses import make_pose
@@ -97,6 +97,41 @@ def test_refine_pose_recovers_a_perturbed_pose_from_edge_points():
     T, cost = refine_pose(T0, K, pts, edge, edges, 1.0, 20)
     assert cost < 1e-6
     assert np.allclose(T[:3, 3], T_true[:3, 3], atol=1e-4)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-8, 1e-6, 1e-3, 0.5, 3.0, np.pi - 1e-2, np.pi - 1e-5])
+def test_pose_history_turns_and_moves_evenly_between_its_poses(angle):
+    """Rotations as slerp gives them at any angle between two poses: a tiny one (which
+    OpenCV's Rodrigues rounds to none below 1e-5 rad) and one near a half turn (where the
+    rotation's antisymmetric part vanishes)."""
+    rng = np.random.default_rng(7)
+    axis = rng.normal(size=3)
+    R0 = Rotation.random(random_state=rng)
+    R1 = R0 * Rotation.from_rotvec(angle * axis / np.linalg.norm(axis))
+    t0, t1 = rng.normal(size=3), rng.normal(size=3)
+    history = PoseHistory()
+    history.restart(1000, make_pose(R0.as_matrix(), t0))
+    history.append(2000, make_pose(R1.as_matrix(), t1))
+    times = np.array([1000.0, 1250.0, 1500.0, 1999.0])
+    T = history.at(times)
+    f = (times - 1000) / 1000
+    turned = Slerp([1000, 2000], Rotation.concatenate([R0, R1]))(times).as_matrix()
+    assert np.abs(T[:, :3, :3] - turned).max() < 1e-12
+    assert np.allclose(T[:, :3, 3], t0 + f[:, None] * (t1 - t0), rtol=0, atol=1e-12)
+
+
+def test_pose_history_holds_its_ends_outside_them_and_forgets_only_what_is_not_needed():
+    history = PoseHistory()
+    poses = [make_pose(np.eye(3), [i, 0.0, 0.0]) for i in range(100)]
+    history.restart(0, poses[0])
+    for i in range(1, 100):
+        history.append(10 * i, poses[i])
+    assert np.array_equal(history.at([-5, 995, 2000]), [poses[0], poses[99], poses[99]])
+    history.forget_before(505)  # the pose at 500 still places 505
+    assert history.at([505])[0, 0, 3] == pytest.approx(50.5)
+    assert len(history) < 100
+    history.restart(3000, poses[7])
+    assert len(history) == 1 and np.array_equal(history.at([0, 5000]), [poses[7], poses[7]])
 
 
 def test_umeyama_undoes_a_rigid_motion_and_ate_is_zero():

@@ -401,6 +401,7 @@ class CellReader:
         return self.config.data_every == 2 or m % 2 == 0
 
     def _to_grid(self, T_cam_world: np.ndarray) -> np.ndarray:
+        """The map (3x3, or (n, 3, 3) for n poses) from ideal pixels to the grid."""
         to_pixels = plane_homography(T_cam_world, self.config.camera.K)
         return self._plane_to_grid @ np.linalg.inv(to_pixels)
 
@@ -435,9 +436,11 @@ class CellReader:
         hi = np.ceil(px.max(axis=0)).astype(int) + pad_px + 1
         return (max(lo[0], 0), min(hi[0], cam.width), max(lo[1], 0), min(hi[1], cam.height))
 
-    def read(self, m: int, ev: EventColumns, pose_at: Callable[[float], np.ndarray]) -> FrameRead:
+    def read(
+        self, m: int, ev: EventColumns, pose_at: Callable[[np.ndarray], np.ndarray]
+    ) -> FrameRead:
         """Frame ``m`` from the pixel bursts ``ev`` (t, p, xu, yu) that began in
-        ``window(m)``."""
+        ``window(m)``; ``pose_at(times)``: the tracked poses (n, 4, 4) at those times."""
         t, p = ev["t"], ev["p"]
         t0, t1 = self.window(m)
         motion = self._grid_motion(pose_at, t1)
@@ -447,8 +450,8 @@ class CellReader:
             steps = max(1, int(np.ceil((t1 - t0) / self.config.decoder.step_us)))
         edges = np.linspace(t0, t1, steps + 1)
         # A step's pose is the tracked one at its middle (``pose_at`` interpolates the updates).
-        poses = [pose_at(b) for b in (edges[1:] + edges[:-1]) / 2]
-        to_grid = np.stack([self._to_grid(T) for T in poses])
+        poses = pose_at((edges[1:] + edges[:-1]) / 2)
+        to_grid = self._to_grid(poses)
         u, v = _grid_coords(t, ev["xu"], ev["yu"], edges, to_grid)
         if self._rises(m):
             self._retime(m, t, p, u, v)
@@ -502,11 +505,11 @@ class CellReader:
         moved = now @ np.linalg.inv(then) @ points.T
         return float(np.max(np.hypot(*(moved[:2] / moved[2] - points.T[:2]))))
 
-    def _grid_motion(self, pose_at: Callable[[float], np.ndarray], t_us: float) -> float:
+    def _grid_motion(self, pose_at: Callable[[np.ndarray], np.ndarray], t_us: float) -> float:
         """How far (cells) the grid's centre moved over the ``_ALIGN_LOOKBACK_US`` before
         ``t_us``."""
-        then = self._to_grid(pose_at(t_us - _ALIGN_LOOKBACK_US))
-        return self._moved(then, self._to_grid(pose_at(t_us)), self._grid_centre)
+        then, now = self._to_grid(pose_at(np.array([t_us - _ALIGN_LOOKBACK_US, t_us])))
+        return self._moved(then, now, self._grid_centre)
 
     def _sharpest(self, density: np.ndarray) -> int:
         """Index of the shifted grid whose (shifts, n, n) ``density`` shows the locator ring

@@ -28,16 +28,9 @@ def pnp(corners_px: np.ndarray, world: np.ndarray, camera: CameraModel) -> np.nd
 
 
 def plane_homography(T_cam_world: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """3x3 H taking marker-plane points (X, Y, 1) in metres to ideal pixels."""
-    return K @ T_cam_world[:3, [0, 1, 3]]
-
-
-def interpolate_pose(T0: np.ndarray, T1: np.ndarray, f: float) -> np.ndarray:
-    """The pose a share ``f`` of the way from ``T0`` to ``T1``: turned about their relative
-    rotation's axis, translated along the line between them."""
-    w, _ = cv2.Rodrigues(T0[:3, :3].T @ T1[:3, :3])
-    R, _ = cv2.Rodrigues(f * w)
-    return make_pose(T0[:3, :3] @ R, T0[:3, 3] + f * (T1[:3, 3] - T0[:3, 3]))
+    """3x3 H (or (n, 3, 3) for n poses) taking marker-plane points (X, Y, 1) in metres to ideal
+    pixels."""
+    return K @ T_cam_world[..., :3, [0, 1, 3]]
 
 
 def project_ideal(T_cam_world: np.ndarray, K: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -62,6 +55,89 @@ def _project(T, K, points):
             out[i, 0], out[i, 1] = X / Z * K[0, 0] + K[0, 2], Y / Z * K[1, 1] + K[1, 2]
         else:
             out[i, 0] = out[i, 1] = np.nan
+    return out
+
+
+class PoseHistory:
+    """Poses (T_cam_world) at increasing times, interpolated in between (``at``)."""
+
+    def __init__(self) -> None:
+        self._t = np.empty(0, np.int64)
+        self._T = np.empty((0, 4, 4))
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def restart(self, t_us: int, T_cam_world: np.ndarray) -> None:
+        """Forget every pose; hold ``T_cam_world`` from ``t_us`` on."""
+        self._n = 0
+        self.append(t_us, T_cam_world)
+
+    def append(self, t_us: int, T_cam_world: np.ndarray) -> None:
+        """Add the pose at ``t_us``, not before the latest one."""
+        if self._n == len(self._t):
+            size = max(64, 2 * self._n)
+            self._t = np.resize(self._t, size)
+            self._T = np.resize(self._T, (size, 4, 4))
+        self._t[self._n], self._T[self._n] = t_us, T_cam_world
+        self._n += 1
+
+    def forget_before(self, t_us: int) -> None:
+        """Drop the poses before ``t_us`` but the latest of them (in batches: this runs for
+        every few events the tracker takes)."""
+        drop = int(np.searchsorted(self._t[: self._n], t_us, "right")) - 1
+        if drop >= 32:
+            self._n -= drop
+            self._t[: self._n] = self._t[drop : drop + self._n]
+            self._T[: self._n] = self._T[drop : drop + self._n]
+
+    def at(self, times_us) -> np.ndarray:
+        """(n, 4, 4) poses at ``times_us``: interpolated between the poses around each time, or
+        the nearest one outside them."""
+        times = np.atleast_1d(np.asarray(times_us, np.float64))
+        return _interpolate(self._t[: self._n], self._T[: self._n], times)
+
+
+@numba.njit(cache=True, nogil=True)
+def _so3_log(R):
+    """The rotation vector of rotation matrix ``R`` (axis times angle, the angle in [0, pi])."""
+    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])  # sin(theta)
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    theta = np.arctan2(s, c)  # accurate at any angle, unlike arccos(c) near 0
+    if theta < 1e-6:
+        return v  # sin(theta) / theta = 1 to within rounding
+    if theta < np.pi - 1e-3:
+        return theta / s * v
+    # Near a half turn v vanishes: the axis a comes from the symmetric part of R,
+    # c I + (1 - c) a a^T (its dominant column), signed as v leans.
+    j = np.argmax(np.array([R[0, 0], R[1, 1], R[2, 2]]))
+    a = (0.5 * (R[:, j] + R[j, :]) - c * np.eye(3)[:, j]) / (1.0 - c)
+    a /= np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    if a[0] * v[0] + a[1] * v[1] + a[2] * v[2] < 0:
+        a = -a
+    return theta * a
+
+
+@numba.njit(cache=True, nogil=True)
+def _interpolate(t, T, at):
+    """``PoseHistory.at``: each pose a share f of the way from the pose before to the one after,
+    turned about their relative rotation's axis by f of its angle and moved along the line
+    between them (compiled: the decoder asks for a pose every quarter millisecond of a frame)."""
+    out = np.empty((at.shape[0], 4, 4))
+    n = t.shape[0]
+    for k in range(at.shape[0]):
+        i = np.searchsorted(t, at[k], "right") - 1
+        if i < 0 or i + 1 >= n:
+            out[k] = T[max(i, 0)]
+            continue
+        f = (at[k] - t[i]) / (t[i + 1] - t[i])
+        R0 = np.ascontiguousarray(T[i, :3, :3])
+        w = _so3_log(R0.T @ np.ascontiguousarray(T[i + 1, :3, :3]))
+        out[k] = np.eye(4)
+        out[k, :3, :3] = R0 @ _so3_exp(f * w)
+        out[k, :3, 3] = T[i, :3, 3] + f * (T[i + 1, :3, 3] - T[i, :3, 3])
     return out
 
 

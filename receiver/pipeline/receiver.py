@@ -31,7 +31,6 @@ waits for the next chunk; ``finish`` processes it at the end of a recording.
 
 from __future__ import annotations
 
-import bisect
 import logging
 import statistics
 import time
@@ -48,7 +47,7 @@ from receiver.pipeline.config import ReceiverConfig
 from receiver.pipeline.decoder import CellReader, FrameRead, cell_side_px, read_stride
 from receiver.pipeline.detector import Detection, MarkerNotFound, detect, nearest_turn
 from receiver.pipeline.filters import EventFilter
-from receiver.pipeline.pose import interpolate_pose, project_ideal
+from receiver.pipeline.pose import PoseHistory, project_ideal
 from receiver.pipeline.smoothing import PoseSmoother
 from receiver.pipeline.tracker import EdgeTracker
 from receiver.pipeline.triage import EventTriage
@@ -148,8 +147,7 @@ class Receiver:
         self._gaps: deque[tuple[int, int]] = deque(maxlen=8)
         """Recent stretches longer than a data frame without a single event: the source dropped
         them (a camera's lost packets, the virtual camera skipping ahead)."""
-        self._pose_t: list[int] = []
-        self._pose_T: list[np.ndarray] = []
+        self._poses = PoseHistory()
         """The tracked poses (T_cam_world) that the decoder reads frames through."""
         self._smoother = PoseSmoother(config.pose_smoothing_us)
         self._last_pose_out = -(1 << 62)
@@ -273,7 +271,7 @@ class Receiver:
         self._probation = self.config.decoder.probation_frames if found.moving and framed else None
         self._turn_leads.clear()
         self._burst_frame_read_only = found.moving
-        self._pose_t, self._pose_T = [t_lock], [T]
+        self._poses.restart(t_lock, T)
         self.state = TRACKING
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
         out += self._pose_output(t_lock, T)
@@ -404,8 +402,7 @@ class Receiver:
                     return out + self._lose(int(events["t"][-1]), str(exc))
             for u in updates:
                 self.stats.pose_updates += 1
-                self._pose_t.append(u.t_us)
-                self._pose_T.append(u.T_cam_world)
+                self._poses.append(u.t_us, u.T_cam_world)
                 out += self._pose_output(u.t_us, u.T_cam_world)
             now = int(events["t"][-1])
             if now - self._last_pose_out >= self.config.pose_interval_us:
@@ -446,7 +443,7 @@ class Receiver:
             self._next_frame += 1
             with self._cpu("decode"):
                 t0, t1 = reader.window(m)
-                box = reader.box(*(self.pose_at(t) for t in (t0, (t0 + t1) / 2, t1)))
+                box = reader.box(*self.pose_at(np.array([t0, (t0 + t1) / 2, t1])))
                 bursts = self._triage.bursts(t0, t1, box)
                 read = reader.read(m, bursts, self.pose_at)
             self.stats.frames_read += 1
@@ -473,7 +470,7 @@ class Receiver:
                 messages = self.stream.push(read.bits, read.confidence)
             frame = FrameOutput(read, True, self.stream.verified_bits - verified)
             if frame.payload_bits:
-                self._verified = (read.t_us, self.pose_at(read.t_us))
+                self._verified = (read.t_us, self.pose_at(np.array([read.t_us]))[0])
             out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]
             if self._failed_probation(frame):
@@ -499,20 +496,16 @@ class Receiver:
         return len(leads) == leads.maxlen and np.median(leads) < self.config.decoder.min_turn_lead
 
     # --- poses -------------------------------------------------------------------------------
-    def pose_at(self, t_us: float) -> np.ndarray:
-        """T_cam_world at ``t_us``: interpolated between the updates around it, or the nearest
-        one outside them. Under motion updates come ~1 ms apart, over which a 12 px/ms flow
-        moves the marker half a cell."""
-        i = bisect.bisect_right(self._pose_t, t_us) - 1
-        if i < 0 or i + 1 == len(self._pose_t):
-            return self._pose_T[max(i, 0)]
-        t0, t1 = self._pose_t[i], self._pose_t[i + 1]
-        return interpolate_pose(self._pose_T[i], self._pose_T[i + 1], (t_us - t0) / (t1 - t0))
+    def pose_at(self, t_us: np.ndarray) -> np.ndarray:
+        """T_cam_world (n, 4, 4) at the times ``t_us`` (n,): interpolated between the updates
+        around each, or the nearest one outside them. Under motion updates come ~1 ms apart,
+        over which a 12 px/ms flow moves the marker half a cell."""
+        return self._poses.at(t_us)
 
     def _trim_poses(self) -> None:
         span = self._buffer.span
-        if span and len(self._pose_t) > 64 and self._pose_t[32] < span[0]:
-            del self._pose_t[:32], self._pose_T[:32]
+        if span:
+            self._poses.forget_before(span[0])
 
     def _pose_output(self, t_us: int, T_cam_world: np.ndarray) -> list[PoseEstimate]:
         """Hand a tracked pose to the smoother; the smoothed poses it gives back."""
