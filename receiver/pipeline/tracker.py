@@ -59,6 +59,10 @@ latest three (under motion the updates come every 0.25-1 ms: a pose's ~0.3 px of
 moves the velocity by ~0.2 px/ms)."""
 _BLOCK = 64
 """Events whose distances to the edges ``_assign`` computes at a time."""
+_BIT_INDEX = np.zeros(37, np.int64)
+_BIT_INDEX[[(1 << e) % 37 for e in range(36)]] = range(36)
+"""Index of the single set bit of ``1 << e`` at ``(1 << e) % 37`` (the remainders of the
+powers of two below 2**36 differ): an edge mask's lowest edge without a loop over the edges."""
 _CARRY_US = 1000
 """An event is carried along its edge's motion for at most this long. A slot can hold an event
 for ``max_age_us`` (30 ms), and carried that long, the velocity's jitter would move it pixels:
@@ -259,6 +263,7 @@ def _assign(
     x, y, dt = np.empty(_BLOCK), np.empty(_BLOCK), np.empty(_BLOCK)
     qx, qy = np.empty((m, _BLOCK)), np.empty((m, _BLOCK))
     along, dist = np.empty((m, _BLOCK)), np.empty((m, _BLOCK))
+    on_edges, near = np.empty(_BLOCK, np.int64), np.empty(_BLOCK, np.bool_)
     for b0 in range(start, t.shape[0], _BLOCK):
         nb = min(_BLOCK, t.shape[0] - b0)
         for j in range(nb):
@@ -271,15 +276,22 @@ def _assign(
                 py = y[j] - (vy[e] + w * dvy[e]) * dt[j]
                 dist[e, j], along[e, j] = _to_segment(px, py, ax[e], ay[e], dx[e], dy[e], inv[e])
                 qx[e, j], qy[e, j] = px, py
+        # Which edges each event is on (bit e), and whether it is in the band: also edge by
+        # edge, since tested per event the eight gates' branches mispredicted (the whole
+        # function took 44 ns per event then, 32 now).
+        on_edges[:nb], near[:nb] = 0, False
+        for e in range(m):
+            for j in range(nb):
+                on_edges[j] |= np.int64(dist[e, j] <= gate[e]) << e
+                near[j] |= dist[e, j] <= band[e]
         for j in range(nb):
             i = b0 + j
-            near, on = False, False
-            for e in range(m):
+            edges = on_edges[j]
+            while edges:
+                lowest = edges & -edges
+                edges ^= lowest
+                e = _BIT_INDEX[lowest % 37]
                 d = dist[e, j]
-                near |= d <= band[e]
-                if d > gate[e]:
-                    continue
-                on = True
                 # Into bin s, replacing its older event in the count and distance sum. Written
                 # out here: as a helper taking the six arrays, numba kept a dozen atomic
                 # reference counts per call, which made this loop 2.5x slower.
@@ -293,7 +305,8 @@ def _assign(
                 now_late = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
                 n_late += now_late - late[e]
                 late[e] = now_late
-            if near:
+            on = on_edges[j] != 0
+            if near[j]:
                 fit[0] += 1
                 fit[1] += on
             fit[2] += on
