@@ -298,16 +298,6 @@ def test_a_still_cameras_few_events_near_the_edges_are_looked_up_at_every_fourth
     assert np.array_equal(sparse.surface, whole.surface)
 
 
-def test_columns_of_selected_events_match_columns_of_their_copy():
-    events = make_events([0, 10, 20, 30], [1, 2, 3, 4], [4, 5, 6, 7], [1, -1, 1, -1])
-    index = np.array([3, 0, 2])
-    picked = to_columns(events, DISTORTED.undistort_table, index)
-    copied = to_columns(events[index], DISTORTED.undistort_table)
-    for field in ("t", "x", "y", "p", "xu", "yu"):
-        assert np.array_equal(picked[field], copied[field])
-    assert picked["t"].tolist() == [30, 0, 20]
-
-
 def _edge_points(tracker: EdgeTracker, n_per_edge: int, rng: np.random.Generator):
     """Ideal pixels within a pixel of the tracker's projected edges."""
     s = rng.uniform(0.02, 0.98, (8, n_per_edge, 1))

@@ -58,17 +58,26 @@ class EventColumns:
 
 
 @numba.njit(cache=True, nogil=True)
-def _columns(events, index, table):
-    """One pass over the records (all, or those at ``index``): contiguous columns plus the ideal
-    coordinates looked up in the undistortion table."""
-    n = events.shape[0] if index is None else index.shape[0]
+def _columns(events, table):
+    """One pass over the records: contiguous columns plus the ideal coordinates looked up in the
+    undistortion table."""
+    n = events.shape[0]
     ct, cx, cy = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16)
     cp, xu, yu = np.empty(n, np.int8), np.empty(n, np.float32), np.empty(n, np.float32)
     for k in range(n):
-        e = events[k] if index is None else events[index[k]]
+        e = events[k]
         ct[k], cx[k], cy[k], cp[k] = e.t, e.x, e.y, e.p
         xu[k], yu[k] = table[e.y, e.x, 0], table[e.y, e.x, 1]
     return ct, cx, cy, cp, xu, yu
+
+
+@numba.njit(cache=True, nogil=True)
+def ideal_coordinates(x, y, table):
+    """(xu, yu) of raw pixels (x, y), looked up in the undistortion table."""
+    xu, yu = np.empty(x.shape[0], np.float32), np.empty(x.shape[0], np.float32)
+    for k in range(x.shape[0]):
+        xu[k], yu[k] = table[y[k], x[k], 0], table[y[k], x[k], 1]
+    return xu, yu
 
 
 @numba.njit(cache=True, nogil=True)
@@ -85,12 +94,9 @@ def first_at(t: np.ndarray, value: int) -> int:
     return lo
 
 
-def to_columns(
-    events: np.ndarray, undistort_table: np.ndarray, index: np.ndarray | None = None
-) -> EventColumns:
-    """Structured events (``EVENT_DTYPE``), all or those at ``index``, as columns with their
-    ideal coordinates."""
-    return EventColumns(*_columns(events, index, undistort_table))
+def to_columns(events: np.ndarray, undistort_table: np.ndarray) -> EventColumns:
+    """Structured events (``EVENT_DTYPE``) as columns with their ideal coordinates."""
+    return EventColumns(*_columns(events, undistort_table))
 
 
 class EventBuffer:
