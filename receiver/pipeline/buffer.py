@@ -40,12 +40,6 @@ class EventColumns:
         return EventColumns(*(getattr(self, f.name)[key] for f in fields(self)))
 
     @classmethod
-    def concatenate(cls, parts: list[EventColumns]) -> EventColumns:
-        if len(parts) == 1:
-            return parts[0]
-        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)))
-
-    @classmethod
     def empty(cls) -> EventColumns:
         return cls(
             np.empty(0, np.int64),

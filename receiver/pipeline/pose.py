@@ -92,7 +92,7 @@ class PoseHistory:
             self._t[: self._n] = self._t[drop : drop + self._n]
             self._T[: self._n] = self._T[drop : drop + self._n]
 
-    def at(self, times_us) -> np.ndarray:
+    def at(self, times_us: np.ndarray | list[float]) -> np.ndarray:
         """(n, 4, 4) poses at ``times_us``: interpolated between the poses around each time, or
         the nearest one outside them."""
         times = np.atleast_1d(np.asarray(times_us, np.float64))
