@@ -374,11 +374,8 @@ class Receiver:
     def _select_near_edges(self) -> None:
         """Show the tracker only the events near its edges: twice its gate (so that a pose
         slipping off the edges still shows) plus the motion of one segment."""
-        tracker = self._tracker
-        edges = project_ideal(tracker.T_cam_world, self.config.camera.K, tracker.edges_world)
-        if np.all(np.isfinite(edges)):
-            reach = 2 * self.config.tracker.gate_px + 4.0
-            self._triage.track_near(edges[:, 0], edges[:, 1], reach)
+        reach = 2 * self.config.tracker.gate_px + 4.0
+        self._triage.track_near(*self._tracker.edges_px, reach)
 
     def _lose(self, now: int, reason: str) -> list[Output]:
         log.info("tracking lost at %d us: %s", now, reason)

@@ -487,6 +487,11 @@ class EdgeTracker:
         self._rebin(T_cam_world, now_us)
 
     @property
+    def edges_px(self) -> tuple[np.ndarray, np.ndarray]:
+        """The tracked edges' ends a -> b (each (8, 2), ideal pixels) at the current pose."""
+        return self._a, self._b
+
+    @property
     def fit_ratio(self) -> float | None:
         """Share of the latest band events that lie on an edge, judged while the image moves
         (``TrackerParams.min_fit_speed_px_per_ms``); None until enough were seen."""
