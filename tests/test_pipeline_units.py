@@ -122,6 +122,8 @@ def test_pose_history_turns_and_moves_evenly_between_its_poses(angle):
 
 def test_pose_history_holds_its_ends_outside_them_and_forgets_only_what_is_not_needed():
     history = PoseHistory()
+    with pytest.raises(ValueError, match="empty"):
+        history.at([0])
     poses = [make_pose(np.eye(3), [i, 0.0, 0.0]) for i in range(100)]
     history.restart(0, poses[0])
     for i in range(1, 100):

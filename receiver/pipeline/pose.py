@@ -95,6 +95,8 @@ class PoseHistory:
     def at(self, times_us: np.ndarray | list[float]) -> np.ndarray:
         """(n, 4, 4) poses at ``times_us``: interpolated between the poses around each time, or
         the nearest one outside them."""
+        if not self._n:
+            raise ValueError("no pose to interpolate: the history is empty")
         times = np.atleast_1d(np.asarray(times_us, np.float64))
         return _interpolate(self._t[: self._n], self._T[: self._n], times)
 
