@@ -537,9 +537,10 @@ def _distance(px: float, py: float, a: np.ndarray, b: np.ndarray) -> tuple[float
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.booleans())
 def test_cluster_assignment_matches_a_plain_loop(seed, moving):
-    """The compiled assignment skips far edges by their lines; a loop that measures every edge
-    must give the same clusters and the same fit counts. Moving edges (up to ~10 px/ms) carry
-    each point back to the time the edges hold, by ``_CARRY_US`` at most."""
+    """The compiled assignment measures a block of events edge by edge and bins each event onto
+    the edges of its mask; a loop over the events and their eight edges must give the same
+    clusters and the same fit counts. Moving edges (up to ~10 px/ms) carry each point back to
+    the time the edges hold, by ``_CARRY_US`` at most."""
     tracker, xu, yu = _tracker_and_points(seed, 300)
     t = np.arange(len(xu), dtype=np.int64) * 10  # 0 .. 3 ms
     ref_us = 1000
