@@ -52,26 +52,25 @@ class EventColumns:
 
 
 @numba.njit(cache=True, nogil=True)
-def _columns(events, table):
-    """One pass over the records: contiguous columns plus the ideal coordinates looked up in the
-    undistortion table."""
-    n = events.shape[0]
-    ct, cx, cy = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16)
-    cp, xu, yu = np.empty(n, np.int8), np.empty(n, np.float32), np.empty(n, np.float32)
-    for k in range(n):
-        e = events[k]
-        ct[k], cx[k], cy[k], cp[k] = e.t, e.x, e.y, e.p
-        xu[k], yu[k] = table[e.y, e.x, 0], table[e.y, e.x, 1]
-    return ct, cx, cy, cp, xu, yu
-
-
-@numba.njit(cache=True, nogil=True)
 def ideal_coordinates(x, y, table):
     """(xu, yu) of raw pixels (x, y), looked up in the undistortion table."""
     xu, yu = np.empty(x.shape[0], np.float32), np.empty(x.shape[0], np.float32)
     for k in range(x.shape[0]):
         xu[k], yu[k] = table[y[k], x[k], 0], table[y[k], x[k], 1]
     return xu, yu
+
+
+@numba.njit(cache=True, nogil=True)
+def _columns(events, table):
+    """Contiguous columns of the records, plus their ideal coordinates."""
+    n = events.shape[0]
+    ct, cx, cy = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16)
+    cp = np.empty(n, np.int8)
+    for k in range(n):
+        e = events[k]
+        ct[k], cx[k], cy[k], cp[k] = e.t, e.x, e.y, e.p
+    xu, yu = ideal_coordinates(cx, cy, table)
+    return ct, cx, cy, cp, xu, yu
 
 
 @numba.njit(cache=True, nogil=True)
