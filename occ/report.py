@@ -121,8 +121,9 @@ class HealthReport(_Model):
     events_per_s: Annotated[float, Field(ge=0.0)]
     state: TrackingState
     source_speed: Annotated[float, Field(ge=0.0)] | None = None
-    """Seconds of events the source delivers per wall-clock second, for a source that can fall
-    behind real time (the virtual camera); below 1 it skips ahead to stay live."""
+    """Seconds of events a live source delivers per second of its own (the virtual camera's
+    simulation, a camera's or a real-time recording's events that the receiver kept up with);
+    below 1 it skips ahead to stay live."""
 
 
 class SurfaceReport(_Model):

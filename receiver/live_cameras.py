@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from receiver.events import make_events
-from receiver.sources import SourceError
+from receiver.sources import SourceError, StayLive
 
 CHUNK_US = 10_000
 
@@ -26,14 +26,20 @@ class Backend:
 
 
 class LiveCamera:
-    """A live sensor; ``chunks`` runs until the camera is unplugged or the daemon stops."""
+    """A live sensor; ``chunks`` runs until the camera is unplugged or the daemon stops, and
+    skips ahead whenever its consumer falls behind (``StayLive``)."""
 
     def __init__(self, width: int, height: int, chunks: Iterator[np.ndarray]) -> None:
         self.width, self.height = width, height
         self._chunks = chunks
+        self._live = StayLive()
+
+    @property
+    def speed(self) -> float | None:
+        return self._live.speed
 
     def chunks(self) -> Iterator[np.ndarray]:
-        return self._chunks
+        return self._live(self._chunks)
 
 
 def _open_neuromorphic_drivers(serial: str) -> LiveCamera:

@@ -6,10 +6,15 @@ A source has a sensor size and yields event chunks in time order. It is named by
 - ``file:PATH`` (or just ``PATH``) a recording, replayed at real-time pace or as fast as possible;
 - ``nd:`` / ``metavision:[SERIAL]`` / ``dv:`` a live camera through an optional backend
   (neuromorphic-drivers, Metavision's Python API, dv-processing).
+
+A live source (a camera, a recording at real-time pace, the virtual camera) never lets its
+consumer fall more than ``MAX_LAG_S`` behind: it skips ahead to what it delivers now, and
+reports its ``speed``, the seconds of events it delivered per second of the source.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -19,14 +24,26 @@ from typing import Protocol
 import numpy as np
 
 __all__ = [
+    "MAX_LAG_S",
+    "BehindNote",
     "EventSource",
     "LinkSettings",
     "LiveClock",
     "RecordingSource",
     "SourceError",
+    "StayLive",
     "open_source",
     "paced",
 ]
+
+log = logging.getLogger(__name__)
+
+MAX_LAG_S = 1.0
+"""Behind a live source by this much, its consumer skips ahead to what the source delivers now."""
+KEEPING_UP = 0.95
+"""``speed`` at or above which a source counts as keeping up with real time."""
+BEHIND_NOTE_S = 30.0
+"""While behind, the log says so at most this often."""
 
 
 class SourceError(RuntimeError):
@@ -34,8 +51,8 @@ class SourceError(RuntimeError):
 
 
 class EventSource(Protocol):
-    """Optional extra, read by the daemon when present: ``speed`` (seconds of events per
-    wall-clock second, for a source that can fall behind real time)."""
+    """Optional extra, read by the daemon when present: ``speed`` (for a live source, the
+    seconds of events it delivered per second of its own; below 1 it skips ahead)."""
 
     width: int
     height: int
@@ -128,6 +145,102 @@ def paced(
         yield chunk
 
 
+class BehindNote:
+    """Says in the log, at most every ``BEHIND_NOTE_S``, that a live source skips ahead because
+    ``who`` cannot keep up, and when it keeps up again."""
+
+    def __init__(self, who: str, because: str) -> None:
+        self.behind = False
+        self._who, self._because = who, because
+        self._skips = 0
+        self._next_note = 0.0
+
+    def skipped(self, speed: float) -> None:
+        self._skips += 1
+        self.behind = True
+        if time.monotonic() >= self._next_note:
+            self._next_note = time.monotonic() + BEHIND_NOTE_S
+            log.warning(
+                "%s at %.2fx real time: %s, so it skipped ahead %d time(s) to what comes now",
+                self._who,
+                speed,
+                self._because,
+                self._skips,
+            )
+            self._skips = 0
+
+    def measured(self, speed: float) -> None:
+        if self.behind and speed >= KEEPING_UP:
+            self.behind = False
+            log.info("%s keeps up with real time again", self._who)
+
+
+class StayLive:
+    """Keeps the consumer of a live stream of chunks (a camera's, or a recording's at its pace)
+    within ``max_lag_s`` of it: further behind, it drops the chunks waiting until one comes
+    fresh, as a camera's driver drops what overflows its buffers. The receiver then sees a gap
+    in event time and goes on from there, re-acquiring the marker if it lost it.
+
+    How late a chunk is comes from the wall clock, tied to event time at a fresh chunk: one the
+    source kept the consumer waiting for during half its span or more (queued ones come far
+    faster), or one earlier than the tie predicts. Tied only once, a camera's clock running
+    1e-4 slower than ours would read as a lag growing by a second every three hours; as it is,
+    such a lag drains the queue once, finds the next chunk fresh and goes on. ``speed``: the
+    share of the source's event time that was kept, over the last ``window_s`` of it (None
+    before)."""
+
+    def __init__(
+        self,
+        who: str = "receiver",
+        *,
+        max_lag_s: float = MAX_LAG_S,
+        window_s: float = 2.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.max_lag_s, self.window_us = max_lag_s, window_s * 1e6
+        self.speed: float | None = None
+        self.skips = 0
+        """Times the consumer fell ``max_lag_s`` behind and chunks were dropped."""
+        self.dropped_events = 0
+        self._clock = clock
+        self._note = BehindNote(who, "it cannot process the events as fast as they come")
+
+    def __call__(self, chunks: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+        tie: tuple[float, int] | None = None  # (wall clock, event time) of a fresh chunk
+        last_us: int | None = None
+        arrived_us = kept_us = 0
+        dropping = False
+        source = iter(chunks)
+        while True:
+            asked = self._clock()
+            chunk = next(source, None)
+            if chunk is None:
+                return
+            if not len(chunk):
+                yield chunk
+                continue
+            now, end_us = self._clock(), int(chunk["t"][-1])
+            span = end_us - (int(chunk["t"][0]) if last_us is None else last_us)
+            arrived_us, last_us = arrived_us + span, end_us
+            late_s = 0.0 if tie is None else now - tie[0] - (end_us - tie[1]) / 1e6
+            if tie is None or late_s < 0 or (now - asked) * 1e6 >= span / 2:
+                tie, late_s, dropping = (now, end_us), 0.0, False
+            if not dropping and late_s > self.max_lag_s:
+                dropping = True
+                self.skips += 1
+                self._note.skipped((end_us - tie[1]) / 1e6 / (now - tie[0]))  # since the tie
+            if dropping:
+                self.dropped_events += len(chunk)
+            else:
+                kept_us += span
+            if arrived_us >= self.window_us:
+                self.speed = kept_us / arrived_us
+                self._note.measured(self.speed)
+                arrived_us = kept_us = 0
+            if not dropping:
+                yield chunk
+
+
 @dataclass
 class RecordingSource:
     """An event file in any format ``receiver.io`` reads."""
@@ -144,9 +257,14 @@ class RecordingSource:
         if self._stream.width is None or self._stream.height is None:
             raise SourceError(f"{self.path} does not state its sensor size; convert it first")
         self.width, self.height = int(self._stream.width), int(self._stream.height)
+        self._live = StayLive()
+
+    @property
+    def speed(self) -> float | None:
+        return self._live.speed if self.realtime else None
 
     def chunks(self) -> Iterator[np.ndarray]:
-        return paced(self._stream) if self.realtime else iter(self._stream)
+        return self._live(paced(self._stream)) if self.realtime else iter(self._stream)
 
 
 def open_source(uri: str, *, realtime: bool = True, **virtual_camera_options) -> EventSource:

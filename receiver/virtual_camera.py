@@ -34,7 +34,7 @@ from occ.stream import StreamEncoder
 from receiver.camera import CameraModel
 from receiver.events import empty_events
 from receiver.screen import Showing, TransmitterClient
-from receiver.sources import LinkSettings, LiveClock, SourceError
+from receiver.sources import MAX_LAG_S, BehindNote, LinkSettings, LiveClock, SourceError
 
 log = logging.getLogger(__name__)
 
@@ -50,12 +50,6 @@ DISTANCE_M = 0.6
 filling a quarter of the view's width (a hand-held phone's distance)."""
 HANDHELD_FLOW_PX_PER_MS = 0.05
 """A gentle hand: the marker drifts ~50 px/s across the 320 px sensor."""
-MAX_LAG_S = 1.0
-"""Behind the screen by this much, the camera skips ahead to what it shows now."""
-BEHIND_NOTE_S = 30.0
-"""While behind, the log says so at most this often."""
-KEEPING_UP = 0.95
-"""``speed`` at or above which the camera counts as keeping up with real time."""
 SIMULATOR_TIMEOUT_S = 120.0
 """Longest wait for the simulator's next packet (its first one compiles the kernels)."""
 
@@ -238,7 +232,9 @@ class VirtualCamera:
         self._last_t = -1
         self._path_us = 0
         """Time the camera has moved along its path: the simulated time, skips left out."""
-        self._behind_note = _BehindNote()
+        self._behind_note = BehindNote(
+            "virtual camera", "the simulation cannot keep up with the screen"
+        )
 
     def encoder(self, showing: Showing) -> StreamEncoder:
         """The stream's encoder, fetched once per stream (a skip ahead reuses it)."""
@@ -380,30 +376,3 @@ def _speed(simulated_us: int, later_by_s: float) -> float:
     """Simulated per wall-clock time: the wall time spent is the simulated time plus how much
     later than the screen the camera got meanwhile (on time, ``LiveClock`` sleeps: 1.0)."""
     return simulated_us / (simulated_us + max(later_by_s, 0.0) * 1e6)
-
-
-class _BehindNote:
-    """Says in the log, at most every ``BEHIND_NOTE_S``, that the camera cannot keep up."""
-
-    def __init__(self) -> None:
-        self.behind = False
-        self._skips = 0
-        self._next_note = 0.0
-
-    def skipped(self, speed: float) -> None:
-        self._skips += 1
-        self.behind = True
-        if time.monotonic() >= self._next_note:
-            self._next_note = time.monotonic() + BEHIND_NOTE_S
-            log.warning(
-                "virtual camera at %.2fx real time: the simulation cannot keep up with the "
-                "screen, so it skipped ahead %d time(s) to what the screen shows now",
-                speed,
-                self._skips,
-            )
-            self._skips = 0
-
-    def measured(self, speed: float) -> None:
-        if self.behind and speed >= KEEPING_UP:
-            self.behind = False
-            log.info("virtual camera keeps up with real time again")

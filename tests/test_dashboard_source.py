@@ -1,5 +1,6 @@
 """The dashboard says when the receiver's event source falls behind real time (a virtual camera
-on a slow machine), in headless Chromium fed by a stand-in receiver over the real websocket."""
+or a receiver on a slow machine), in headless Chromium fed by a stand-in receiver over the real
+websocket."""
 
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ def test_dashboard_shows_the_sources_speed(serve_app, browser) -> None:
     expect(page.locator("#connection")).to_have_text("live")
     source = page.locator("#source-speed")
     for speed, shown, state in [
-        (0.42, "virtual camera at 0.42x real time: skipping ahead to stay live", "behind"),
+        (0.42, "source at 0.42x real time: skipping ahead to stay live", "behind"),
         (1.0, "keeps up with real time", "live"),
         (None, "live", "live"),
     ]:

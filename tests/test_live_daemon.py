@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import re
+import time
 
 import numpy as np
 import pytest
@@ -12,10 +14,18 @@ from occ.report import FrameStats, HealthReport, MessageReport, PoseReport, Surf
 from occ.stream import ReceivedMessage
 from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder
 from receiver.events import make_events
+from receiver.live_cameras import LiveCamera
 from receiver.pipeline.decoder import FrameRead
 from receiver.pipeline.receiver import FrameOutput, MessageOutput, PoseEstimate, StateChange
 from receiver.poses import make_pose, read_tum
-from receiver.sources import LinkSettings, LiveClock, SourceError, open_source, paced
+from receiver.sources import (
+    MAX_LAG_S,
+    LinkSettings,
+    LiveClock,
+    SourceError,
+    open_source,
+    paced,
+)
 from receiver.spool import Spool
 
 
@@ -262,6 +272,35 @@ def test_health_carries_the_sources_speed(tmp_path, speed) -> None:
     sink = ListSink()
     Daemon(source, ScriptedPipeline(), sink, OutputFolder(tmp_path / "out")).run()
     assert {h.source_speed for h in sink.of(HealthReport)} == {speed}
+
+
+class SlowPipeline(ScriptedPipeline):
+    """Takes twice a chunk's span to push it: a receiver at half real time."""
+
+    def push(self, chunk: np.ndarray) -> list:
+        time.sleep(2 * (int(chunk["t"][-1]) - int(chunk["t"][0]) + 1) / 1e6)
+        return super().push(chunk)
+
+
+def test_a_daemon_behind_a_live_camera_stays_live_and_says_so(tmp_path, caplog) -> None:
+    """In real time: 3 s of a camera's 10 ms chunks, each returned when complete."""
+
+    def camera():
+        start = time.monotonic()
+        for i in range(300):
+            time.sleep(max(start + (i + 1) / 100 - time.monotonic(), 0.0))
+            yield chunk(i * 10_000, (i + 1) * 10_000 - 1)
+
+    pipeline, sink = SlowPipeline(), ListSink()
+    daemon = Daemon(LiveCamera(64, 48, camera()), pipeline, sink, OutputFolder(tmp_path / "out"))
+    started = time.monotonic()
+    with caplog.at_level("WARNING", logger="receiver.sources"):
+        daemon.run()
+    assert time.monotonic() - started < 3.0 + MAX_LAG_S + 0.3, "the lag stayed bounded"
+    assert 100 <= pipeline.chunks <= 200, "about half of the chunks were pushed"
+    assert re.search(r"receiver at 0\.[3-6]\dx real time: .* skipped ahead", caplog.text)
+    speeds = [h.source_speed for h in sink.of(HealthReport) if h.source_speed is not None]
+    assert speeds and all(0.3 < v < 0.7 for v in speeds)
 
 
 def test_live_clock_says_how_late_and_what_is_due_now() -> None:

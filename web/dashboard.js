@@ -224,13 +224,13 @@ function drawState() {
 }
 
 function showSourceSpeed(speed) {
-  // Only a source that can fall behind real time (the virtual camera) reports its speed.
+  // Only a live source reports its speed: the share of its events the receiver kept up with.
   const dd = $("source-speed");
   const behind = speed != null && speed < KEEPING_UP;
   dd.dataset.state = behind ? "behind" : "live";
   if (speed == null) dd.textContent = "live";
   else if (!behind) dd.textContent = "keeps up with real time";
-  else dd.textContent = `virtual camera at ${speed.toFixed(2)}x real time: skipping ahead to stay live`;
+  else dd.textContent = `source at ${speed.toFixed(2)}x real time: skipping ahead to stay live`;
 }
 
 function drawSurface(u) {
