@@ -226,7 +226,7 @@ def test_noise_without_marker_reports_why_nothing_locked():
 def test_decode_cli_writes_message_trajectory_and_report(tmp_path, capsys):
     from receiver.io import write_events
 
-    scene = _scene("robust", STATIC)
+    scene = _scene("robust", STATIC, cells=20)  # the link settings come from the scene
     rec = simulate(scene, duration_s=1.6, chunk_us=10_000)
     path = tmp_path / "rec.dat"
     write_events(path, rec, width=CAMERA.width, height=CAMERA.height)
@@ -237,27 +237,36 @@ def test_decode_cli_writes_message_trajectory_and_report(tmp_path, capsys):
             str(path),
             "--scene",
             str(tmp_path / "scene.json"),
-            "--cells",
-            "16",
             "--out",
             str(tmp_path / "out"),
         ]
     )
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert code == 0 and report["locked"] and report["messages"][0]["verified"]
-    assert report["ber"] == 0.0
+    assert report["ber"] < 0.005  # N = 20 on this small sensor misreads a few bits (0.23%)
+    assert report["link"] == {
+        "profile": "robust",
+        "cells": 20,
+        "refresh_hz": 60.0,
+        "marker_size_m": 0.272,
+    }
     files = list((tmp_path / "out" / "messages").iterdir())
     assert [f.read_bytes() for f in files] == [MESSAGE]
     smoothed = np.loadtxt(tmp_path / "out" / "trajectory.tum")
     assert len(smoothed) > 10
     # The tracker's own poses (a still camera's hardly move): at the same times.
-    args = ["decode", str(path), "--scene", str(tmp_path / "scene.json"), "--cells", "16"]
+    args = ["decode", str(path), "--scene", str(tmp_path / "scene.json"), "--cells", "20"]
     assert cli_main([*args, "--pose-smoothing-ms", "0", "--out", str(tmp_path / "raw")]) == 0
     raw = np.loadtxt(tmp_path / "raw" / "trajectory.tum")
     assert np.array_equal(raw[:, 0], smoothed[:, 0])
     assert np.abs(raw[:, 1:4] - smoothed[:, 1:4]).max() < 1e-3
     code = cli_main([*args, "--pose-smoothing-ms", "-1", "--out", str(tmp_path / "bad")])
     assert code == 2 and "pose smoothing must be >= 0" in capsys.readouterr().err
+    # An option overrides the scene: told N = 16, the receiver finds no marker of that size.
+    wrong = ["decode", str(path), "--scene", str(tmp_path / "scene.json"), "--cells", "16"]
+    assert cli_main([*wrong, "--out", str(tmp_path / "wrong")]) == 1
+    report = json.loads((tmp_path / "wrong" / "report.json").read_text())
+    assert report["link"]["cells"] == 16 and not report["messages"]
 
 
 def test_decode_cli_reports_a_calibration_that_does_not_fit(tmp_path, capsys):

@@ -17,6 +17,14 @@ log = logging.getLogger(__name__)
 
 CHUNK_US = 10_000
 """Events are pushed in 10 ms chunks: the granularity of idle pose output and frame decoding."""
+DEFAULTS = {
+    "profile": DEFAULT_PROFILE,
+    "cells": 16,
+    "refresh_hz": 60.0,
+    "marker_size": 0.272,
+    "message_size": None,
+}
+"""The link's settings where neither an option nor a scene gives them."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -27,14 +35,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--calibration", type=Path, help="camera calibration file (default: the camera of --scene)"
     )
-    p.add_argument("--profile", choices=PROFILE_NAMES, default=DEFAULT_PROFILE)
-    p.add_argument("--cells", type=int, default=16, help="payload side N")
-    p.add_argument("--refresh-hz", type=float, default=60.0, help="display refresh rate")
+    # The link's settings come from these options, else from --scene, else the defaults.
+    p.add_argument(
+        "--profile", choices=PROFILE_NAMES, help=f"link profile (default: {DEFAULT_PROFILE})"
+    )
+    p.add_argument("--cells", type=int, help=f"payload side N (default: {DEFAULTS['cells']})")
+    p.add_argument(
+        "--refresh-hz",
+        type=float,
+        help=f"display refresh rate (default: {DEFAULTS['refresh_hz']:g})",
+    )
     p.add_argument(
         "--marker-size",
         type=float,
-        default=0.272,
-        help="side of the white ring's outer boundary, metres",
+        help=f"white ring's outer side, metres (default: {DEFAULTS['marker_size']})",
     )
     p.add_argument(
         "--message-size",
@@ -47,9 +61,29 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=5.0,
         help="fit each pose to the tracker's updates within this many ms of it (0: raw updates)",
     )
-    p.add_argument("--scene", type=Path, help="simulator scene.json: ground truth for the BER")
+    p.add_argument(
+        "--scene",
+        type=Path,
+        help="simulator scene.json: ground truth for the BER, and the link settings not given",
+    )
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.set_defaults(func=run)
+
+
+def _link_settings(args: argparse.Namespace, scene) -> None:
+    """Fill the link options not given from the scene, else from ``DEFAULTS``."""
+    known = DEFAULTS
+    if scene is not None:
+        known = {
+            "profile": scene.encoder.profile.name,
+            "cells": scene.encoder.geometry.cells,
+            "refresh_hz": scene.display.refresh_hz,
+            "marker_size": scene.marker_size_m,
+            "message_size": len(scene.encoder.message),
+        }
+    for name, value in known.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
 
 
 def _camera(args: argparse.Namespace, scene):
@@ -80,6 +114,7 @@ def _run(args: argparse.Namespace) -> int:
         from receiver.sim import Scene
 
         scene = Scene.from_dict(json.loads(args.scene.read_text()))
+    _link_settings(args, scene)
     camera = _camera(args, scene)
     stream = read_events(args.recording, chunk_us=CHUNK_US)
     if stream.width is not None and (stream.width, stream.height) != (camera.width, camera.height):

@@ -99,7 +99,14 @@ class DecodeLog:
         delivered = sum(len(m.message.data) for m in self.messages)
         cpu = dict(st.cpu_s)
         cpu_total = sum(cpu.values())
+        config = self.receiver.config
         return {
+            "link": {  # what the receiver was told the screen sends
+                "profile": config.profile,
+                "cells": config.cells,
+                "refresh_hz": config.refresh_hz,
+                "marker_size_m": config.marker_size_m,
+            },
             "events": st.events,
             "duration_s": duration_s,
             "locked": bool(st.lock_times_us),
