@@ -44,6 +44,8 @@ KEEPING_UP = 0.95
 """``speed`` at or above which a source counts as keeping up with real time."""
 BEHIND_NOTE_S = 30.0
 """While behind, the log says so at most this often."""
+FRESH_SHARE = 0.75
+"""While dropping, a chunk that took this share of its span to come was not waiting: caught up."""
 
 
 class SourceError(RuntimeError):
@@ -181,13 +183,13 @@ class StayLive:
     fresh, as a camera's driver drops what overflows its buffers. The receiver then sees a gap
     in event time and goes on from there, re-acquiring the marker if it lost it.
 
-    How late a chunk is comes from the wall clock, tied to event time at a fresh chunk: one the
-    source kept the consumer waiting for during half its span or more (queued ones come far
-    faster), or one earlier than the tie predicts. Tied only once, a camera's clock running
-    1e-4 slower than ours would read as a lag growing by a second every three hours; as it is,
-    such a lag drains the queue once, finds the next chunk fresh and goes on. ``speed``: the
-    share of the source's event time that was kept, over the last ``window_s`` of it (None
-    before)."""
+    Lateness is wall-clock time against event time, tied at the first chunk, at any chunk
+    earlier than the tie predicts, and where dropping ends: at the first chunk that took most
+    of its span to come, where queued ones come back to back. (While chunks are kept, how long
+    one took to come tells nothing: a reader on a starved core takes most of a span per chunk.)
+    Re-tying keeps clock drift from reading as lag: a camera clock 1e-4 slow would add a second
+    every three hours; here it costs one chunk when it adds up. ``speed``: the share of the
+    source's event time kept over the last ``window_s`` of it (None before)."""
 
     def __init__(
         self,
@@ -223,7 +225,8 @@ class StayLive:
             span = end_us - (int(chunk["t"][0]) if last_us is None else last_us)
             arrived_us, last_us = arrived_us + span, end_us
             late_s = 0.0 if tie is None else now - tie[0] - (end_us - tie[1]) / 1e6
-            if tie is None or late_s < 0 or (now - asked) * 1e6 >= span / 2:
+            caught_up = dropping and (now - asked) * 1e6 >= FRESH_SHARE * span
+            if tie is None or late_s < 0 or caught_up:
                 tie, late_s, dropping = (now, end_us), 0.0, False
             if not dropping and late_s > self.max_lag_s:
                 dropping = True
