@@ -24,6 +24,24 @@ ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 """Screenshots the browser tests leave behind for a person to look at (git-ignored)."""
 
 
+class FakeWall:
+    """A wall clock that only sleeps and simulated work move on."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def clock(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+
+@pytest.fixture
+def wall() -> FakeWall:
+    return FakeWall()
+
+
 @pytest.fixture
 def artifacts() -> Path:
     ARTIFACTS.mkdir(exist_ok=True)

@@ -27,18 +27,7 @@ CHUNK_US = 5_000
 ROBUST_16 = LinkSettings("robust", 16)
 
 
-class FakeWall:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def clock(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.now += seconds
-
-
-def simulation_at(wall: FakeWall, speed: float):
+def simulation_at(wall, speed: float):
     """Stands in for ``receiver.sim.simulate``: each chunk costs ``1 / speed`` of its span."""
 
     def simulate(scene, duration_s: float, chunk_us: int):
@@ -50,10 +39,9 @@ def simulation_at(wall: FakeWall, speed: float):
 
 
 @pytest.fixture
-def camera(monkeypatch):
+def camera(monkeypatch, wall):
     """``(camera, wall, showing)``: the camera watches ``showing[0]`` on the fake wall clock;
     set ``simulation_at(wall, speed)`` as ``receiver.sim.simulate`` before reading chunks."""
-    wall = FakeWall()
     showing = [Showing("aaaaaaaaaaaa", ROBUST_16, 60.0, 0)]
     camera = VirtualCamera(
         "http://127.0.0.1:9",
