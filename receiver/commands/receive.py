@@ -54,7 +54,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--pace",
         choices=("realtime", "fast"),
         default="realtime",
-        help="recordings: replay at the recorded pace, or as fast as the pipeline runs",
+        help="recordings: replay at the recorded pace (skipping ahead, as a live camera does, "
+        "when the pipeline falls a second behind), or every event as fast as the pipeline runs",
     )
     p.add_argument(
         "--calibration",
