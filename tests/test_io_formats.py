@@ -9,6 +9,7 @@ import pytest
 
 from receiver.events import concat, make_events
 from receiver.io import EventFileError, detect_format, read_events, write_events
+from receiver.io.stream import EventChecker
 
 EVENTS = make_events(
     np.arange(1000, 41000, 100), np.arange(400) % 64, np.arange(400) % 48, np.arange(400) % 3 == 0
@@ -210,3 +211,28 @@ def test_aedat4_written_by_faery(tmp_path):
     stream = read_events(tmp_path / "e.aedat4")
     assert (stream.format, stream.width, stream.height) == ("aedat4", 64, 48)
     np.testing.assert_array_equal(concat(stream), EVENTS)
+
+
+T = 2_000_005
+
+
+@pytest.mark.parametrize(
+    ("t", "x", "y", "index", "message"),
+    [
+        ([T, T, T], [1, 10, 2], [1, 1, 1], 1, "event at x=10, y=1 is outside the 10x8 sensor"),
+        ([T, T, T], [1, 2, 3], [1, 1, 8], 2, "event at x=3, y=8 is outside the 10x8 sensor"),
+        ([T, -1, T], [1, 2, 3], [1, 1, 1], 1, "negative timestamp -1 us"),
+        # Reordered by up to a second, as sensors do: fine; more, against the earlier chunk too.
+        ([1_500_000, 1_000_000, 999_999], [1, 2, 3], [1, 1, 1], 2, "time goes back from "),
+    ],
+)
+def test_the_checker_names_the_first_implausible_event(t, x, y, index, message):
+    checker = EventChecker(10, 8)
+    assert checker.first_problem(make_events([1_000, 2_000_000], [0, 9], [0, 7], [1, 0])) is None
+    found, what = checker.first_problem(make_events(t, x, y, np.ones(3, bool)))
+    assert found == index and what.startswith(message)
+    if "goes back" in message:
+        assert what == (
+            "time goes back from 2000000 to 999999 us, more than 1000000 us: "
+            "not a real sensor's reordering"
+        )

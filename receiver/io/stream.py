@@ -6,6 +6,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
+import numba
 import numpy as np
 
 from receiver.events import EVENT_DTYPE
@@ -96,17 +97,9 @@ class EventChecker:
         """Index and description of the first bad event, or ``None``; remembers the good ones."""
         if not len(events):
             return None
-        t = events["t"]
-        running_max = np.maximum.accumulate(np.maximum(t, self.t_max))
-        bad = (
-            (events["x"] >= self.width)
-            | (events["y"] >= self.height)
-            | (t < 0)
-            | (t < running_max - MAX_TIME_REVERSAL_US)
-        )
-        i = int(np.argmax(bad))
-        if not bad[i]:
-            self.t_max = int(running_max[-1])
+        i, latest = _first_bad(events, self.width, self.height, self.t_max, MAX_TIME_REVERSAL_US)
+        if i < 0:
+            self.t_max = latest
             return None
         ev = events[i]
         if ev["x"] >= self.width or ev["y"] >= self.height:
@@ -117,9 +110,22 @@ class EventChecker:
         if ev["t"] < 0:
             return i, f"negative timestamp {ev['t']} us"
         return i, (
-            f"time goes back from {running_max[i]} to {ev['t']} us, more than "
+            f"time goes back from {latest} to {ev['t']} us, more than "
             f"{MAX_TIME_REVERSAL_US} us: not a real sensor's reordering"
         )
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_bad(events, width, height, t_max, max_reversal):
+    """(index of the first event outside the sensor, before time 0 or ``max_reversal`` before
+    the latest time so far, or -1; the latest time before it). One pass: numpy's version took
+    five, a quarter of a DAT file's reading time."""
+    for i in range(events.shape[0]):
+        e = events[i]
+        if e.x >= width or e.y >= height or e.t < 0 or e.t + max_reversal < t_max:
+            return i, t_max
+        t_max = max(t_max, e.t)
+    return -1, t_max
 
 
 def as_event_chunks(chunks: np.ndarray | Iterable[np.ndarray]) -> Iterator[np.ndarray]:
