@@ -5,7 +5,9 @@ first consecutive root 0), with fast paths.
 with it costs milliseconds. RS encoding and the syndromes are linear maps over GF(256), so we
 derive their matrices once from ``reedsolo`` itself and apply them to whole batches of codewords
 with table look-ups. Only codewords whose syndromes are non-zero (or that carry erasures) go to
-the corrector, ``occ.rs_kernel`` (reedsolo's algorithm compiled with numba).
+the corrector, ``occ.rs_kernel`` (reedsolo's algorithm compiled with numba), which is loaded
+only then: the server, which only encodes, runs without numba (about 100 MiB less resident
+memory).
 """
 
 from __future__ import annotations
@@ -16,8 +18,9 @@ from functools import cache
 import numpy as np
 import reedsolo
 
-from occ.rs_kernel import GF_EXP, GF_LOG, correct_rows
-
+reedsolo.init_tables()  # the defaults every RSCodec uses; idempotent
+GF_EXP = np.array(reedsolo.gf_exp[:512], dtype=np.int64)
+GF_LOG = np.array(reedsolo.gf_log[:256], dtype=np.int64)
 MAX_CODEWORD = 255
 
 
@@ -100,6 +103,8 @@ class ReedSolomon:
         erasures = np.asarray(erasures, dtype=bool).reshape(codewords.shape)
         ok = self.syndromes_clean(codewords) & ~erasures.any(axis=1)
         if not ok.all():
+            from occ.rs_kernel import correct_rows
+
             ok |= correct_rows(codewords, erasures, ~ok, self.nsym, self.nsym - margin)
         return codewords[:, : self.k], ok
 

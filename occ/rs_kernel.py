@@ -12,12 +12,9 @@ than the code can correct is refused with the textbook bound ``2 errors + erasur
 from __future__ import annotations
 
 import numpy as np
-import reedsolo
 from numba import njit
 
-reedsolo.init_tables()  # the defaults every RSCodec uses; idempotent
-GF_EXP = np.array(reedsolo.gf_exp[:512], dtype=np.int64)
-GF_LOG = np.array(reedsolo.gf_log[:256], dtype=np.int64)
+from occ.fec import GF_EXP, GF_LOG
 
 
 @njit(cache=True)

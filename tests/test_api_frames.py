@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -114,3 +116,24 @@ def test_frames_format_is_documented_in_openapi(client: TestClient) -> None:
     ok = operation["get"]["responses"]["200"]
     assert "application/octet-stream" in ok["content"]
     assert "MSB first" in ok["description"] and "X-Frame-Side" in ok["description"]
+
+
+def test_the_server_serves_frames_without_the_receivers_compiler(tmp_path: Path) -> None:
+    """Encoding needs no Reed-Solomon corrector: the server never loads numba (~100 MiB of
+    resident memory with LLVM) nor anything of the receiver."""
+    script = f"""
+import sys
+from fastapi.testclient import TestClient
+from server.app import create_app
+from server.settings import Settings
+client = TestClient(create_app(Settings(data_dir={str(tmp_path)!r})))
+binary = {{"Content-Type": "application/octet-stream"}}
+for profile in ("paper", "robust", "fast"):
+    url = f"/api/messages?profile={{profile}}&cells=16"
+    id = client.post(url, content=b"x" * 300, headers=binary).json()["id"]
+    assert client.get(f"/api/messages/{{id}}/frames?count=8").status_code == 200
+print(sorted({{m.split(".")[0] for m in sys.modules}} & {{"numba", "llvmlite", "receiver"}}))
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
