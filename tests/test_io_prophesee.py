@@ -109,6 +109,24 @@ def test_dat_vector_and_type_00(tmp_path):
         assert as_tuples(concat(stream)) == [(1000, 100, 200, 1)]
 
 
+def test_dat_counts_the_u32_clock_wraps_and_refuses_reserved_bits(tmp_path):
+    def dat(*records: tuple[int, int]) -> Path:
+        path = tmp_path / "wrap.dat"
+        body = np.array(list(records), dtype=[("t", "<u4"), ("w", "<u4")]).tobytes()
+        path.write_bytes(b"% Width 640\n% Height 480\n" + bytes([0x0C, 8]) + body)
+        return path
+
+    w = 5 | (7 << 14) | (1 << 28)  # x 5, y 7, ON
+    near_end = (1 << 32) - 10
+    t = read_all(dat((near_end, w), (3, w), (near_end, w), (2, w)))["t"].tolist()
+    assert t == [near_end, (1 << 32) + 3, (1 << 32) + near_end, (2 << 32) + 2]
+    # A small step back is a sensor's reordering, not a wrap.
+    assert read_all(dat((1000, w), (990, w)))["t"].tolist() == [1000, 990]
+    stream = read_events(dat((1, w), (2, w | (1 << 30)), (3, w)))
+    with pytest.raises(EventFileError, match="reserved bits 29-31 are set"):
+        list(stream)
+
+
 def test_writers_emit_the_vectors(tmp_path):
     ev = make_events([1000], [100], [200], [1])
     write_events(tmp_path / "a.dat", ev, width=640, height=480)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from receiver.events import EVENT_DTYPE
@@ -74,20 +75,11 @@ def _records(
             whole = len(block) - len(block) % RECORD.itemsize
             rec = np.frombuffer(block, RECORD, count=whole // RECORD.itemsize)
             if len(rec):
-                raw_t = rec["t"].astype(np.int64)
-                wrapped = np.diff(raw_t, prepend=last_t) < -(1 << 31)
-                t = raw_t + ((wraps + np.cumsum(wrapped)) << 32)
-                wraps += int(wrapped.sum())
-                last_t = int(raw_t[-1])
                 events = np.empty(len(rec), EVENT_DTYPE)
-                events["t"] = t
-                events["x"] = rec["w"] & 0x3FFF
-                events["y"] = (rec["w"] >> 14) & 0x3FFF
-                events["p"] = np.where(rec["w"] & (1 << 28), 1, -1)
+                wraps, last_t, reserved = _decode(rec, events, wraps, last_t)
                 problem = checker.first_problem(events)
-                reserved = np.flatnonzero(rec["w"] >> 29)
-                if reserved.size and (problem is None or reserved[0] < problem[0]):
-                    problem = int(reserved[0]), "reserved bits 29-31 are set (corrupt record)"
+                if reserved >= 0 and (problem is None or reserved < problem[0]):
+                    problem = reserved, "reserved bits 29-31 are set (corrupt record)"
                 if problem is not None:
                     i, what = problem
                     if i:
@@ -99,6 +91,27 @@ def _records(
                 raise EventFileError(
                     path, "file ends inside an 8-byte record (truncated)", offset=offset
                 )
+
+
+@numba.njit(cache=True, nogil=True)
+def _decode(rec, events, wraps, last_t):
+    """Fill ``events`` from the records; return the timestamp wraps counted so far (u32
+    microseconds wrap every 71.6 min), the last raw time and the first record with reserved
+    bits set (-1: none). One compiled pass: with numpy's, a DAT file took eight times as long
+    to read."""
+    reserved = -1
+    for i in range(rec.shape[0]):
+        t, w = np.int64(rec[i].t), rec[i].w
+        if t - last_t < -(1 << 31):
+            wraps += 1
+        last_t = t
+        e = events[i]
+        e.t = t + (wraps << 32)
+        e.x, e.y = w & 0x3FFF, (w >> 14) & 0x3FFF
+        e.p = 1 if w & (1 << 28) else -1
+        if reserved < 0 and w >> 29:
+            reserved = i
+    return wraps, last_t, reserved
 
 
 def write_dat(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: int) -> int:
