@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
+import numba
 import numpy as np
 from pydantic import BaseModel
 
@@ -337,9 +338,9 @@ class Daemon:
         sy = max(1, -(-self.source.height // height))
         t_now = int(chunk["t"][-1])
         latest = np.full((height, width), np.iinfo(np.int64).min // 2, np.int64)
-        rows = np.minimum(chunk["y"] // sy, height - 1)
-        cols = np.minimum(chunk["x"] // sx, width - 1)
-        np.maximum.at(latest, (rows, cols), chunk["t"])
+        rows = np.minimum(np.arange(self.source.height) // sy, height - 1)
+        cols = np.minimum(np.arange(self.source.width) // sx, width - 1)
+        _latest_times(latest, chunk, rows, cols)
         fade = np.exp(-(t_now - latest) / self.config.thumbnail_tau_us)
         pixels = np.round(255 * fade).astype(np.uint8)
         return SurfaceReport(
@@ -348,6 +349,17 @@ class Daemon:
             height=height,
             pixels_b64=base64.b64encode(pixels.tobytes()).decode(),
         )
+
+
+@numba.njit(cache=True, nogil=True)
+def _latest_times(latest, events, rows, cols):
+    """Each thumbnail pixel's latest event time, sensor pixel (y, x) falling on thumbnail pixel
+    (rows[y], cols[x]). ``np.maximum.at`` took 36-51 ns per event: 70-100 ms for one 10 ms chunk
+    of a hand-held 1280x720 camera, four times a second."""
+    for i in range(events.shape[0]):
+        e = events[i]
+        r, c = rows[e.y], cols[e.x]
+        latest[r, c] = max(latest[r, c], e.t)
 
 
 class RateMeter:

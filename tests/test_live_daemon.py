@@ -158,6 +158,25 @@ def test_news_is_ephemeral_and_well_formed(tmp_path) -> None:
     assert daemon.summary.frames == 1
 
 
+def test_the_thumbnail_fades_each_block_from_its_latest_event(tmp_path) -> None:
+    daemon = Daemon(ListSource([]), ScriptedPipeline(), ListSink(), OutputFolder(tmp_path))
+    tau = daemon.config.thumbnail_tau_us  # the 64x48 sensor: one pixel per thumbnail pixel
+    t_now = 100_000
+    # (1, 2) fired at t_now - tau, then earlier (sensors reorder); (5, 3) at t_now; (63, 47)
+    # at t_now - 2 tau, then at t_now - tau.
+    events = make_events(
+        [t_now - tau, t_now - 2 * tau, t_now - 2 * tau, t_now - tau, t_now],
+        [1, 1, 63, 63, 5],
+        [2, 2, 47, 47, 3],
+        np.ones(5, bool),
+    )
+    report = daemon.thumbnail(events)
+    pixels = np.frombuffer(base64.b64decode(report.pixels_b64), np.uint8).reshape(48, 64)
+    one_tau = round(255 * np.exp(-1))
+    assert (pixels[3, 5], pixels[2, 1], pixels[47, 63]) == (255, one_tau, one_tau)
+    assert np.count_nonzero(pixels) == 3
+
+
 def test_spool_keeps_identity_and_numbers_across_restarts(tmp_path) -> None:
     spool = Spool(tmp_path / "spool.db")
     first_id = spool.receiver_id
