@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     # The link's settings come from these options, else from --scene, else the defaults.
     p.add_argument(
-        "--profile", choices=PROFILE_NAMES, help=f"link profile (default: {DEFAULT_PROFILE})"
+        "--profile", choices=PROFILE_NAMES, help=f"link profile (default: {DEFAULTS['profile']})"
     )
     p.add_argument("--cells", type=int, help=f"payload side N (default: {DEFAULTS['cells']})")
     p.add_argument(
