@@ -21,7 +21,7 @@ system-deps:
 	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq chromium fonts-dejavu-core; }
 
 demo: $(STAMP)
-	$(BIN)/python -m server.demo
+	$(BIN)/python -m eventocc.server.demo
 
 test: $(STAMP) system-deps
 	$(BIN)/ruff check .

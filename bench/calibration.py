@@ -19,9 +19,9 @@ from bench.experiments.streaming import (
     static_scene,
 )
 from bench.report import write_section
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.sim import SensorModel, simulate
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.sim import SensorModel, simulate
 
 DATA_FRAMES = 4
 

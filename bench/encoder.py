@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import write_section
-from occ.profiles import PROFILE_NAMES
-from occ.stream import StreamDecoder, StreamEncoder
+from eventocc.occ.profiles import PROFILE_NAMES
+from eventocc.occ.stream import StreamDecoder, StreamEncoder
 
 SIDES = (16, 48, 96)
 REFRESHES = 600

@@ -25,9 +25,9 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from receiver.camera import CameraModel
-from receiver.sim.display import LUX_TO_NITS_PER_REFLECTANCE, Display, settle
-from receiver.sim.motion import Trajectory, project_points
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.sim.display import LUX_TO_NITS_PER_REFLECTANCE, Display, settle
+from eventocc.receiver.sim.motion import Trajectory, project_points
 
 TEXTURE_PX_PER_MODULE = 8
 """Screen texture resolution: enough that warping (bilinear) keeps module edges sharp."""

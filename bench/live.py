@@ -41,15 +41,15 @@ import numpy as np
 from websockets.asyncio.client import connect
 
 from bench.report import write_section
-from occ.report import Hello, PoseReport, TrackingState
-from occ.stream import StreamEncoder
-from receiver.daemon import Daemon, DaemonConfig, OutputFolder
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.receiver import Receiver
-from receiver.publisher import Publisher
-from receiver.sources import LiveClock
-from receiver.spool import Spool
-from receiver.virtual_camera import DISTANCE_M, default_camera, virtual_sensor
+from eventocc.occ.report import Hello, PoseReport, TrackingState
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.live.daemon import Daemon, DaemonConfig, OutputFolder
+from eventocc.receiver.live.publisher import Publisher
+from eventocc.receiver.live.sources import LiveClock
+from eventocc.receiver.live.spool import Spool
+from eventocc.receiver.live.virtual_camera import DISTANCE_M, default_camera, virtual_sensor
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.receiver import Receiver
 
 ROOT = Path(__file__).resolve().parent.parent
 TOKEN = "bench-token"
@@ -123,7 +123,7 @@ class ServerProcess:
 
 
 def simulated_chunks(duration_s: float) -> list[np.ndarray]:
-    from receiver.sim import Scene, StaticMotion, simulate
+    from eventocc.receiver.sim import Scene, StaticMotion, simulate
 
     encoder = StreamEncoder(os.urandom(2000), name="bench.bin", profile="robust", cells=16)
     scene = Scene(

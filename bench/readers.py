@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import write_section
-from receiver.events import make_events
-from receiver.io import WRITE_FORMATS, read_events, write_events
+from eventocc.receiver.events import make_events
+from eventocc.receiver.io import WRITE_FORMATS, read_events, write_events
 
 N_EVENTS = 4_000_000
 N_TEXT = 400_000  # text is for interchange, not speed: fewer events keep the run short

@@ -40,17 +40,24 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from bench.report import write_section
-from occ.frame_codec import FrameCodec
-from occ.profiles import get_profile
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.receiver import TRACKING, FrameOutput, Receiver
-from receiver.pipeline.report import DecodeLog, FrameTruth
-from receiver.pipeline.tracker import EdgeTracker
-from receiver.poses import invert
-from receiver.sim import Display, HandHeldMotion, Scene, SensorModel, StaticMotion, simulate
-from receiver.sim.motion import look_at
+from eventocc.occ.frame_codec import FrameCodec
+from eventocc.occ.profiles import get_profile
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.receiver import TRACKING, FrameOutput, Receiver
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.tracker import EdgeTracker
+from eventocc.receiver.poses import invert
+from eventocc.receiver.sim import (
+    Display,
+    HandHeldMotion,
+    Scene,
+    SensorModel,
+    StaticMotion,
+    simulate,
+)
+from eventocc.receiver.sim.motion import look_at
 
 SMALL = CameraModel(346, 260, np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]]))
 PAPER = CameraModel.paper()

@@ -19,9 +19,9 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 
 from bench.report import write_section
-from occ.profiles import PROFILE_NAMES
-from server.app import create_app
-from server.settings import Settings
+from eventocc.occ.profiles import PROFILE_NAMES
+from eventocc.server.app import create_app
+from eventocc.server.settings import Settings
 
 CELLS = (16, 64)
 BATCH = 60

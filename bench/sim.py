@@ -11,16 +11,16 @@ import time
 import numpy as np
 
 from bench.report import write_section
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.sim import HandHeldMotion, Scene, SensorModel, StaticMotion, simulate
-from receiver.sim.scene import marker_size_for_cell_px
-from receiver.virtual_camera import (
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.live.virtual_camera import (
     DISTANCE_M,
     HANDHELD_FLOW_PX_PER_MS,
     default_camera,
     virtual_sensor,
 )
+from eventocc.receiver.sim import HandHeldMotion, Scene, SensorModel, StaticMotion, simulate
+from eventocc.receiver.sim.scene import marker_size_for_cell_px
 
 DURATION_S = 0.5
 RUNS = 3

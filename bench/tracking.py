@@ -17,13 +17,13 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from bench.report import write_section
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.pipeline.config import ReceiverConfig, TrackerParams
-from receiver.pipeline.metrics import held_s, pose_errors
-from receiver.pipeline.receiver import Receiver
-from receiver.pipeline.report import DecodeLog, FrameTruth
-from receiver.sim import Display, HandHeldMotion, Scene, SensorModel, simulate
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.pipeline.config import ReceiverConfig, TrackerParams
+from eventocc.receiver.pipeline.metrics import held_s, pose_errors
+from eventocc.receiver.pipeline.receiver import Receiver
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.sim import Display, HandHeldMotion, Scene, SensorModel, simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 

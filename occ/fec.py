@@ -5,8 +5,8 @@ first consecutive root 0), with fast paths.
 with it costs milliseconds. RS encoding and the syndromes are linear maps over GF(256), so we
 derive their matrices once from ``reedsolo`` itself and apply them to whole batches of codewords
 with table look-ups. Only codewords whose syndromes are non-zero (or that carry erasures) go to
-the corrector, ``occ.rs_kernel`` (reedsolo's algorithm compiled with numba), which is loaded
-only then: the server, which only encodes, runs without numba (about 100 MiB less resident
+the corrector, ``eventocc.occ.rs_kernel`` (reedsolo's algorithm compiled with numba), which is
+loaded only then: the server, which only encodes, runs without numba (about 100 MiB less resident
 memory).
 """
 
@@ -18,20 +18,9 @@ from functools import cache
 import numpy as np
 import reedsolo
 
-reedsolo.init_tables()  # the defaults every RSCodec uses; idempotent
-GF_EXP = np.array(reedsolo.gf_exp[:512], dtype=np.int64)
-GF_LOG = np.array(reedsolo.gf_log[:256], dtype=np.int64)
+from eventocc.occ.gf256 import GF_EXP, GF_MUL
+
 MAX_CODEWORD = 255
-
-
-def _gf_mul_table() -> np.ndarray:
-    table = GF_EXP[GF_LOG[:, None] + GF_LOG[None, :]].astype(np.uint8)
-    table[0, :] = table[:, 0] = 0
-    return table
-
-
-GF_MUL = _gf_mul_table()
-"""(256, 256) uint8: ``GF_MUL[a, b]`` is the GF(256) product of a and b."""
 
 
 def _gf_matmul(rows: np.ndarray, matrix: np.ndarray) -> np.ndarray:
@@ -103,7 +92,7 @@ class ReedSolomon:
         erasures = np.asarray(erasures, dtype=bool).reshape(codewords.shape)
         ok = self.syndromes_clean(codewords) & ~erasures.any(axis=1)
         if not ok.all():
-            from occ.rs_kernel import correct_rows
+            from eventocc.occ.rs_kernel import correct_rows
 
             ok |= correct_rows(codewords, erasures, ~ok, self.nsym, self.nsym - margin)
         return codewords[:, : self.k], ok

@@ -27,7 +27,7 @@ from functools import cache
 
 import raptorq
 
-from occ.profiles import LinkProfile
+from eventocc.occ.profiles import LinkProfile
 
 _PREFIX = struct.Struct(">Q32sB")
 MAX_NAME_BYTES = 255

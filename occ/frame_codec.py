@@ -17,9 +17,9 @@ import math
 
 import numpy as np
 
-from occ.fec import MAX_CODEWORD, ReedSolomon
-from occ.fountain import symbol_size_for
-from occ.framing import (
+from eventocc.occ.fec import MAX_CODEWORD, ReedSolomon
+from eventocc.occ.fountain import symbol_size_for
+from eventocc.occ.framing import (
     FrameHeader,
     FramingError,
     byte_min,
@@ -32,7 +32,7 @@ from occ.framing import (
     unseal,
     whitening_mask,
 )
-from occ.profiles import LinkProfile
+from eventocc.occ.profiles import LinkProfile
 
 OVERHEAD = FrameHeader.SIZE + FrameHeader.CRC_SIZE
 

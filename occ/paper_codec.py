@@ -21,8 +21,8 @@ from collections import deque
 
 import numpy as np
 
-from occ.fec import paper_rs
-from occ.framing import byte_min, bytes_to_cells, cells_to_bytes
+from eventocc.occ.fec import paper_rs
+from eventocc.occ.framing import byte_min, bytes_to_cells, cells_to_bytes
 
 DETECTION_MARGIN = 2
 """Parity bytes the paper decoder keeps for detection. There is no CRC, and rs(255, 251) can

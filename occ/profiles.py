@@ -2,7 +2,7 @@
 
 - ``paper``: the paper bit for bit: the message Reed-Solomon coded as its footnote says, then raw
   bits row-major, MSB first, 1 = white, zero-padded to whole frames; data frame then blank frame.
-  No header: the receiver must see the data frames in order (see ``occ.paper_codec``).
+  No header: the receiver must see the data frames in order (see ``eventocc.occ.paper_codec``).
 - ``robust`` (default): every data frame is one fountain-code symbol with a header and a CRC,
   Reed-Solomon coded and interleaved over the frame, whitened; data frame then blank frame.
   A receiver can join at any time, lose or repeat frames, and still recover the message.
@@ -55,3 +55,18 @@ def get_profile(name: str) -> LinkProfile:
         raise ValueError(
             f"unknown link profile {name!r}; valid profiles: {', '.join(PROFILE_NAMES)}"
         ) from None
+
+
+@dataclass(frozen=True)
+class LinkSettings:
+    """What the receiver pipeline must be told about the screen: its link profile, cells and
+    refresh rate."""
+
+    profile: str
+    cells: int
+    refresh_hz: float = 60.0
+    """Whole hertz: a page's measured rate wobbles by a fraction of a hertz, which the receiver
+    absorbs (it re-times every frame from its own burst) and must not rebuild for."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "refresh_hz", float(round(self.refresh_hz)))

@@ -14,7 +14,7 @@ from typing import Annotated, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
-from occ.stream import ReceivedMessage
+from eventocc.occ.stream import ReceivedMessage
 
 PROTOCOL_VERSION = 1
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from occ.fec import GF_EXP, GF_LOG
+from eventocc.occ.gf256 import GF_EXP, GF_LOG
 
 
 @njit(cache=True)

@@ -20,7 +20,7 @@ Refresh timeline (60 Hz display):
 ``b_k``) and returns the messages completed by it. Framed profiles accept frames lost, repeated,
 reordered or from any starting point, and never return bytes whose sha256 does not match.
 The ``paper`` profile has no header: its decoder needs ``message_size`` and in-order frames
-(see ``occ.paper_codec``).
+(see ``eventocc.occ.paper_codec``).
 
 An empty message is valid: ``paper`` sends one all-black data frame, the framed profiles a
 fountain object holding only the name, size and checksum.
@@ -34,12 +34,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occ.fountain import FountainDecoder, FountainEncoder, stream_id_of
-from occ.frame_codec import FrameCodec
-from occ.framing import FrameHeader
-from occ.marker import MarkerGeometry
-from occ.paper_codec import PaperDecoder, PaperEncoder
-from occ.profiles import DEFAULT_PROFILE, LinkProfile, get_profile
+from eventocc.occ.fountain import FountainDecoder, FountainEncoder, stream_id_of
+from eventocc.occ.frame_codec import FrameCodec
+from eventocc.occ.framing import FrameHeader
+from eventocc.occ.marker import MarkerGeometry
+from eventocc.occ.paper_codec import PaperDecoder, PaperEncoder
+from eventocc.occ.profiles import DEFAULT_PROFILE, LinkProfile, get_profile
 
 PREAMBLE_BLANK = 180
 """Blank refreshes opening the preamble (3 s at 60 fps)."""

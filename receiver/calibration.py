@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import yaml
 
-from receiver.camera import CameraModel
+from eventocc.receiver.camera import CameraModel
 
 CALIBRATION_FORMATS = ("ros", "opencv", "eventocc")
 # The distortion model CameraModel implements, under the names tools use for it.

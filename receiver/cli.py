@@ -20,7 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
-        importlib.import_module(f"receiver.commands.{name}").add_parser(sub)
+        importlib.import_module(f"eventocc.receiver.commands.{name}").add_parser(sub)
     return parser
 
 

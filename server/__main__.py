@@ -11,8 +11,8 @@ from pathlib import Path
 import uvicorn
 from pydantic import ValidationError
 
-from server.app import UVICORN_OPTIONS, create_app
-from server.settings import Settings
+from eventocc.server.app import UVICORN_OPTIONS, create_app
+from eventocc.server.settings import Settings
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

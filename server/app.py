@@ -5,25 +5,27 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from html import escape
+from importlib import resources
 from pathlib import Path
 
 from fastapi import APIRouter, FastAPI
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.api import api_router
-from server.api.encoding import EncoderCache
-from server.settings import Settings
-from server.store import MessageStore
+from eventocc.server.api import api_router
+from eventocc.server.api.encoding import EncoderCache
+from eventocc.server.settings import Settings
+from eventocc.server.store import MessageStore
 
-WEB_DIR = Path(__file__).resolve().parent.parent / "web"
+WEB_DIR = Path(str(resources.files("eventocc.web")))
+"""The pages, shipped as package data: a checkout's ``web/``, or the installed copy."""
 
 UVICORN_OPTIONS = {"ws_per_message_deflate": False}
 """For every way the app is served. No per-message deflate on websockets: updates are small
 JSON, and compressing each one for each viewer (one zlib stream per connection) took a third
 more server CPU with 100 dashboards (bench/live.py) to save little bandwidth."""
 
-OPTIONAL_ROUTER_MODULES = ("server.live",)
+OPTIONAL_ROUTER_MODULES = ("eventocc.server.live",)
 """Modules exposing ``router``, included when they exist (websockets, health, metrics)."""
 
 

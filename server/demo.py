@@ -22,8 +22,8 @@ from urllib.parse import quote
 
 import uvicorn
 
-from server.app import UVICORN_OPTIONS, create_app
-from server.settings import Settings
+from eventocc.server.app import UVICORN_OPTIONS, create_app
+from eventocc.server.settings import Settings
 
 SAMPLE_NAME = "hello.txt"
 SAMPLE_TEXT = (
@@ -94,7 +94,7 @@ def start_receiver(
     env = {**os.environ, "NUMBA_NUM_THREADS": "1"}
     if settings.token is not None:
         env["EVENTOCC_TOKEN"] = settings.token.get_secret_value()
-    command = [sys.executable, "-m", "receiver.cli", "receive", "--source", "sim:"]
+    command = [sys.executable, "-m", "eventocc.receiver.cli", "receive", "--source", "sim:"]
     command += ["--server", base_url, "--out", str(settings.data_dir / "receiver")]
     if motion is not None:
         command += ["--motion", motion]

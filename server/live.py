@@ -4,7 +4,7 @@
   (when one is set), then sends numbered reports
   ``{"seq": n | null, "report": {...}}``. Durable reports (numbered) are stored, then
   acknowledged with ``{"type": "ack", "seq": n}``; a replayed number is acknowledged and skipped.
-- ``/ws/dashboard``: read-only fan-out of every update (see ``server.hub``).
+- ``/ws/dashboard``: read-only fan-out of every update (see ``eventocc.server.hub``).
 - ``/ws/transmitter``: a transmitter page's playback status; the same state as
   ``POST /api/transmitter/status`` (``app.state.transmitter_status``).
 - REST: receptions (list, one, their bytes), a receiver's kept trajectory, ``/healthz`` and
@@ -32,11 +32,11 @@ from fastapi.websockets import WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, TypeAdapter, ValidationError
 from starlette.requests import HTTPConnection
 
-from occ.report import FrameStats, Hello, MessageReport, PoseReport, ProgressReport, Report
-from server.api.schemas import TransmitterStatus, TransmitterStatusPublic
-from server.hub import Hub
-from server.receptions import Reception, ReceptionStore
-from server.store import MessageStore
+from eventocc.occ.report import FrameStats, Hello, MessageReport, PoseReport, ProgressReport, Report
+from eventocc.server.api.schemas import TransmitterStatus, TransmitterStatusPublic
+from eventocc.server.hub import Hub
+from eventocc.server.receptions import Reception, ReceptionStore
+from eventocc.server.store import MessageStore
 
 log = logging.getLogger(__name__)
 

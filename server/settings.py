@@ -7,8 +7,8 @@ from pathlib import Path
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from occ.marker import MAX_CELLS, MIN_CELLS
-from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
+from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
+from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 
 MIB = 1 << 20
 

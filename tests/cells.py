@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occ.marker import MarkerGeometry
+from eventocc.occ.marker import MarkerGeometry
 
 
 def locator_block(geometry: MarkerGeometry, payload: np.ndarray) -> np.ndarray:

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from fastapi import FastAPI
 
-from server.demo import bound_url, start_server
-from server.settings import Settings
+from eventocc.server.demo import bound_url, start_server
+from eventocc.server.settings import Settings
 
 ServeApp = Callable[..., tuple[str, FastAPI]]
 

@@ -10,10 +10,10 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from occ.profiles import DEFAULT_PROFILE
-from occ.stream import StreamEncoder
-from server.app import create_app
-from server.settings import Settings
+from eventocc.occ.profiles import DEFAULT_PROFILE
+from eventocc.occ.stream import StreamEncoder
+from eventocc.server.app import create_app
+from eventocc.server.settings import Settings
 
 RAW = {"Content-Type": "application/octet-stream"}
 CAP = 4096

@@ -17,11 +17,11 @@ from fastapi import APIRouter
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 
-import server.app
-from server import demo
-from server.__main__ import parse_args, settings_from_args
-from server.app import create_app
-from server.settings import MIB, Settings
+from eventocc.server import app as server_app
+from eventocc.server import demo
+from eventocc.server.__main__ import parse_args, settings_from_args
+from eventocc.server.app import create_app
+from eventocc.server.settings import MIB, Settings
 
 
 @pytest.fixture
@@ -125,7 +125,7 @@ def test_optional_router_is_included_when_its_module_exists(
     module.router.add_api_route("/healthz-test", lambda: {"ok": True})
     monkeypatch.setitem(sys.modules, module.__name__, module)
     monkeypatch.setattr(
-        server.app, "OPTIONAL_ROUTER_MODULES", ("eventocc_test_absent", module.__name__)
+        server_app, "OPTIONAL_ROUTER_MODULES", ("eventocc_test_absent", module.__name__)
     )
     client = TestClient(create_app(Settings(data_dir=tmp_path)))
     assert client.get("/healthz-test").json() == {"ok": True}
@@ -134,9 +134,9 @@ def test_optional_router_is_included_when_its_module_exists(
 def test_optional_router_with_a_broken_import_fails_loudly(monkeypatch: pytest.MonkeyPatch) -> None:
     module = types.ModuleType("eventocc_test_broken")
     monkeypatch.setitem(sys.modules, module.__name__, module)  # imports, but has no router
-    monkeypatch.setattr(server.app, "OPTIONAL_ROUTER_MODULES", (module.__name__,))
+    monkeypatch.setattr(server_app, "OPTIONAL_ROUTER_MODULES", (module.__name__,))
     with pytest.raises(AttributeError):
-        server.app.optional_routers()
+        server_app.optional_routers()
 
 
 # --- console script and demo -------------------------------------------------------------------
@@ -175,7 +175,7 @@ def test_demo_serves_the_sample_and_reuses_it(tmp_path: Path) -> None:
 def test_demo_stopped_by_sigterm_stops_its_receiver_too(tmp_path: Path) -> None:
     root = Path(__file__).resolve().parent.parent
     demo_process = subprocess.Popen(
-        [sys.executable, "-m", "server.demo"],
+        [sys.executable, "-m", "eventocc.server.demo"],
         cwd=root,
         env={**os.environ, "EVENTOCC_PORT": "0", "EVENTOCC_DATA_DIR": str(tmp_path)},
         stdout=subprocess.PIPE,

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from occ.stream import StreamEncoder
-from server.api.frames import MAX_BATCH, pack_frames
-from server.app import create_app
-from server.settings import Settings
+from eventocc.occ.stream import StreamEncoder
+from eventocc.server.api.frames import MAX_BATCH, pack_frames
+from eventocc.server.app import create_app
+from eventocc.server.settings import Settings
 
 MESSAGE = b"frames for the transmitter page " * 8
 
@@ -124,8 +124,8 @@ def test_the_server_serves_frames_without_the_receivers_compiler(tmp_path: Path)
     script = f"""
 import sys
 from fastapi.testclient import TestClient
-from server.app import create_app
-from server.settings import Settings
+from eventocc.server.app import create_app
+from eventocc.server.settings import Settings
 client = TestClient(create_app(Settings(data_dir={str(tmp_path)!r})))
 binary = {{"Content-Type": "application/octet-stream"}}
 for profile in ("paper", "robust", "fast"):

@@ -14,9 +14,9 @@ from bench.experiments.eventcam import EventRun, camera
 from bench.experiments.streaming import FIT_SHARE, PAPER_CELL_PX, cell_px, paper_cell_px
 from bench.framecam import FrameCamera, Slideshow
 from bench.tracking import POSE_GAP_US
-from occ.marker import MarkerGeometry
-from receiver.camera import CameraModel
-from receiver.sim.motion import Rig, StaticMotion
+from eventocc.occ.marker import MarkerGeometry
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.sim.motion import Rig, StaticMotion
 
 CAMERA = CameraModel.paper().resized(480, 360)
 
@@ -158,7 +158,7 @@ def test_pose_errors_match_evo():
     from scipy.spatial.transform import Rotation
 
     from bench.experiments.localization import RPE_DELTA_US
-    from receiver.pipeline.metrics import pose_errors
+    from eventocc.receiver.pipeline.metrics import pose_errors
 
     rng = np.random.default_rng(0)
     n = 360

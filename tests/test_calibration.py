@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from receiver.calibration import CalibrationError, load_calibration, save_calibration
-from receiver.camera import CameraModel
+from eventocc.receiver.calibration import CalibrationError, load_calibration, save_calibration
+from eventocc.receiver.camera import CameraModel
 
 ROS_YAML = """image_width: 1280
 image_height: 720

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from receiver.camera import CameraModel
+from eventocc.receiver.camera import CameraModel
 
 
 def test_projection_and_lookup_undistortion_agree():

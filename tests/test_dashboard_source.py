@@ -10,7 +10,7 @@ import time
 import pytest
 from websockets.sync.client import connect
 
-from occ.report import HealthReport, Hello, TrackingState
+from eventocc.occ.report import HealthReport, Hello, TrackingState
 
 pytestmark = pytest.mark.browser
 

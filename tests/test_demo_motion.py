@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from receiver.virtual_camera import DISTANCE_M
+from eventocc.receiver.live.virtual_camera import DISTANCE_M
 
 ROOT = Path(__file__).resolve().parent.parent
 MOVING_WITHIN_S = 30.0
@@ -62,10 +62,10 @@ def dashboard_poses(port: int, first_within_s: float, then_s: float) -> np.ndarr
 
 @contextmanager
 def running_demo(tmp_path: Path, port: int, **popen) -> Iterator[subprocess.Popen]:
-    """``server.demo`` in its own process group, killed whole at the end (anything of it left
-    running, the demo or its receiver, would load the machine for the tests after it)."""
+    """``eventocc.server.demo`` in its own process group, killed whole at the end (anything of it
+    left running, the demo or its receiver, would load the machine for the tests after it)."""
     demo = subprocess.Popen(
-        [sys.executable, "-m", "server.demo"],
+        [sys.executable, "-m", "eventocc.server.demo"],
         cwd=ROOT,
         env={**os.environ, "EVENTOCC_PORT": str(port), "EVENTOCC_DATA_DIR": str(tmp_path)},
         stderr=subprocess.PIPE,

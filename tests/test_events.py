@@ -3,7 +3,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from receiver.events import EVENT_DTYPE, concat, make_events, rechunk_by_count, rechunk_by_time
+from eventocc.receiver.events import (
+    EVENT_DTYPE,
+    concat,
+    make_events,
+    rechunk_by_count,
+    rechunk_by_time,
+)
 
 
 def _events(times):

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from receiver.cli import main
-from receiver.events import concat, make_events
-from receiver.io import read_events, write_events
+from eventocc.receiver.cli import main
+from eventocc.receiver.events import concat, make_events
+from eventocc.receiver.io import read_events, write_events
 
 EVENTS = make_events(
     np.arange(0, 2_000_000, 1000),

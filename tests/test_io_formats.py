@@ -7,9 +7,9 @@ import logging
 import numpy as np
 import pytest
 
-from receiver.events import concat, make_events
-from receiver.io import EventFileError, detect_format, read_events, write_events
-from receiver.io.stream import EventChecker
+from eventocc.receiver.events import concat, make_events
+from eventocc.receiver.io import EventFileError, detect_format, read_events, write_events
+from eventocc.receiver.io.stream import EventChecker
 
 EVENTS = make_events(
     np.arange(1000, 41000, 100), np.arange(400) % 64, np.arange(400) % 48, np.arange(400) % 3 == 0

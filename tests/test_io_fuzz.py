@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from receiver.events import make_events
-from receiver.io import EventFileError, read_events, write_events
+from eventocc.receiver.events import make_events
+from eventocc.receiver.io import EventFileError, read_events, write_events
 
 MUTANTS_PER_FORMAT = 500
 rng = np.random.default_rng(7)

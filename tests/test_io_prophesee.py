@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from receiver.events import concat, make_events
-from receiver.io import EventFileError, read_events, write_events
+from eventocc.receiver.events import concat, make_events
+from eventocc.receiver.io import EventFileError, read_events, write_events
 
 REPO = Path(__file__).resolve().parent.parent
 REAL_DATA = Path(os.environ.get("EVENTOCC_REAL_DATA", REPO / ".." / "shared" / "data" / "real"))
@@ -205,8 +205,8 @@ def test_real_evt3_reversals_are_small(real_data):
 def test_small_blocks_and_chunks_decode_the_same_events(real_data, monkeypatch):
     path = real_data / "evt3_sample.raw"
     whole = read_all(path)
-    monkeypatch.setattr("receiver.io.prophesee_raw.CHUNK_EVENTS", 5000)
-    monkeypatch.setattr("receiver.io.prophesee_raw.BLOCK_BYTES", 4098)  # odd word boundary
+    monkeypatch.setattr("eventocc.receiver.io.prophesee_raw.CHUNK_EVENTS", 5000)
+    monkeypatch.setattr("eventocc.receiver.io.prophesee_raw.BLOCK_BYTES", 4098)  # odd word boundary
     chunks = list(read_events(path))
     assert len(chunks) > 40 and max(len(c) for c in chunks) <= 5000
     np.testing.assert_array_equal(concat(chunks), whole)

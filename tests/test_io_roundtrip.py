@@ -7,11 +7,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from receiver.events import concat, make_events
-from receiver.io import WRITE_FORMATS, read_events, write_events
-from receiver.io.dat import MAX_T as DAT_MAX_T
-from receiver.io.prophesee_raw import EVT2_MAX_T, EVT3_MAX_T
-from receiver.io.text import MAX_T as TEXT_MAX_T
+from eventocc.receiver.events import concat, make_events
+from eventocc.receiver.io import WRITE_FORMATS, read_events, write_events
+from eventocc.receiver.io.dat import MAX_T as DAT_MAX_T
+from eventocc.receiver.io.prophesee_raw import EVT2_MAX_T, EVT3_MAX_T
+from eventocc.receiver.io.text import MAX_T as TEXT_MAX_T
 
 WIDTH, HEIGHT = 64, 48
 MAX_T = {

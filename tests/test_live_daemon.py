@@ -10,23 +10,23 @@ import time
 import numpy as np
 import pytest
 
-from occ.report import FrameStats, HealthReport, MessageReport, PoseReport, SurfaceReport
-from occ.stream import ReceivedMessage
-from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder
-from receiver.events import make_events
-from receiver.live_cameras import LiveCamera
-from receiver.pipeline.decoder import FrameRead
-from receiver.pipeline.receiver import FrameOutput, MessageOutput, PoseEstimate, StateChange
-from receiver.poses import make_pose, read_tum
-from receiver.sources import (
-    MAX_LAG_S,
-    LinkSettings,
-    LiveClock,
-    SourceError,
-    open_source,
-    paced,
+from eventocc.occ.profiles import LinkSettings
+from eventocc.occ.report import FrameStats, HealthReport, MessageReport, PoseReport, SurfaceReport
+from eventocc.occ.stream import ReceivedMessage
+from eventocc.receiver.events import make_events
+from eventocc.receiver.live.cameras import LiveCamera
+from eventocc.receiver.live.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder
+from eventocc.receiver.live.sources import MAX_LAG_S, LiveClock, SourceError, paced
+from eventocc.receiver.live.spool import Spool
+from eventocc.receiver.live.uri import open_source
+from eventocc.receiver.pipeline.decoder import FrameRead
+from eventocc.receiver.pipeline.receiver import (
+    FrameOutput,
+    MessageOutput,
+    PoseEstimate,
+    StateChange,
 )
-from receiver.spool import Spool
+from eventocc.receiver.poses import make_pose, read_tum
 
 
 class ListSink:
@@ -271,7 +271,7 @@ def follow(tmp_path, caplog, links: list[LinkSettings], **pinned):
     follower = LinkFollower(build, source, links[0], **pinned)
     first = follower.pipeline()
     daemon = Daemon(source, first, ListSink(), OutputFolder(tmp_path / "out"), follower=follower)
-    with caplog.at_level("INFO", logger="receiver.daemon"):
+    with caplog.at_level("INFO", logger="eventocc.receiver.live.daemon"):
         daemon.run()
     return daemon, first, builds
 
@@ -313,7 +313,7 @@ def test_a_daemon_behind_a_live_camera_stays_live_and_says_so(tmp_path, caplog) 
     pipeline, sink = SlowPipeline(), ListSink()
     daemon = Daemon(LiveCamera(64, 48, camera()), pipeline, sink, OutputFolder(tmp_path / "out"))
     started = time.monotonic()
-    with caplog.at_level("WARNING", logger="receiver.sources"):
+    with caplog.at_level("WARNING", logger="eventocc.receiver.live.sources"):
         daemon.run()
     assert time.monotonic() - started < 3.0 + MAX_LAG_S + 0.3, "the lag stayed bounded"
     assert 100 <= pipeline.chunks <= 200, "about half of the chunks were pushed"

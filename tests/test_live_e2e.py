@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from receiver.virtual_camera import DISTANCE_M
+from eventocc.receiver.live.virtual_camera import DISTANCE_M
 
 pytestmark = pytest.mark.browser
 
@@ -59,7 +59,7 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
         [
             sys.executable,
             "-m",
-            "receiver.cli",
+            "eventocc.receiver.cli",
             "receive",
             "--source",
             "sim:",

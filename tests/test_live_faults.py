@@ -17,10 +17,10 @@ from pathlib import Path
 
 import pytest
 
-from occ.report import MessageReport, PoseReport, TrackingState
-from occ.stream import ReceivedMessage
-from receiver.publisher import Publisher
-from receiver.spool import Spool
+from eventocc.occ.report import MessageReport, PoseReport, TrackingState
+from eventocc.occ.stream import ReceivedMessage
+from eventocc.receiver.live.publisher import Publisher
+from eventocc.receiver.live.spool import Spool
 
 TOKEN = "fault-token"
 ROOT = Path(__file__).resolve().parent.parent
@@ -146,8 +146,8 @@ import sys, time
 from pathlib import Path
 sys.path.insert(0, {tests!r})
 from test_live_faults import message
-from receiver.publisher import Publisher
-from receiver.spool import Spool
+from eventocc.receiver.live.publisher import Publisher
+from eventocc.receiver.live.spool import Spool
 
 spool = Spool(Path({out!r}) / "spool.db")
 publisher = Publisher({url!r}, spool, token={token!r}, backoff_s=(0.05, 0.5)).start()

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from receiver.screen import ScreenWatch, TransmitterClient
-from receiver.sources import LinkSettings
+from eventocc.occ.profiles import LinkSettings
+from eventocc.receiver.live.screen import ScreenWatch, TransmitterClient
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -47,7 +47,7 @@ class DaemonProcess:
     """``eventocc-receiver receive`` on the virtual camera, its log read as it comes."""
 
     def __init__(self, base_url: str, out: Path, *options: str) -> None:
-        command = [sys.executable, "-m", "receiver.cli", "receive", "--source", "sim:"]
+        command = [sys.executable, "-m", "eventocc.receiver.cli", "receive", "--source", "sim:"]
         command += ["--motion", "static"]  # quick to lock on each stream it follows
         command += ["--server", base_url, "--out", str(out), *options]
         self.process = subprocess.Popen(

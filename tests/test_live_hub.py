@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from server.hub import Hub
+from eventocc.server.hub import Hub
 
 
 def texts(n: int, start: int = 0) -> list[dict]:

@@ -16,9 +16,9 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from occ.report import Hello, MessageReport, PoseReport, SurfaceReport, TrackingState
-from occ.stream import ReceivedMessage
-from server.receptions import ReceptionStore
+from eventocc.occ.report import Hello, MessageReport, PoseReport, SurfaceReport, TrackingState
+from eventocc.occ.stream import ReceivedMessage
+from eventocc.server.receptions import ReceptionStore
 
 TOKEN = "s3cret-token"
 TEXT = b"received over the air"

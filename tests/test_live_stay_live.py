@@ -9,8 +9,8 @@ import logging
 import numpy as np
 import pytest
 
-from receiver.events import make_events
-from receiver.sources import MAX_LAG_S, StayLive, paced
+from eventocc.receiver.events import make_events
+from eventocc.receiver.live.sources import MAX_LAG_S, StayLive, paced
 
 CHUNK_US = 10_000
 START = 100.0

@@ -12,11 +12,12 @@ import signal
 import numpy as np
 import pytest
 
-from occ.stream import StreamEncoder
-from receiver.events import make_events
-from receiver.screen import Showing
-from receiver.sources import LinkSettings, LiveClock, SourceError
-from receiver.virtual_camera import (
+from eventocc.occ.profiles import LinkSettings
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.events import make_events
+from eventocc.receiver.live.screen import Showing
+from eventocc.receiver.live.sources import LiveClock, SourceError
+from eventocc.receiver.live.virtual_camera import (
     MAX_LAG_S,
     SimulatorInThread,
     SimulatorProcess,
@@ -28,7 +29,8 @@ ROBUST_16 = LinkSettings("robust", 16)
 
 
 def simulation_at(wall, speed: float):
-    """Stands in for ``receiver.sim.simulate``: each chunk costs ``1 / speed`` of its span."""
+    """Stands in for ``eventocc.receiver.sim.simulate``: each chunk costs ``1 / speed`` of its
+    span."""
 
     def simulate(scene, duration_s: float, chunk_us: int):
         for t in itertools.count(0, chunk_us):
@@ -41,7 +43,8 @@ def simulation_at(wall, speed: float):
 @pytest.fixture
 def camera(monkeypatch, wall):
     """``(camera, wall, showing)``: the camera watches ``showing[0]`` on the fake wall clock;
-    set ``simulation_at(wall, speed)`` as ``receiver.sim.simulate`` before reading chunks."""
+    set ``simulation_at(wall, speed)`` as ``eventocc.receiver.sim.simulate`` before reading
+    chunks."""
     showing = [Showing("aaaaaaaaaaaa", ROBUST_16, 60.0, 0)]
     camera = VirtualCamera(
         "http://127.0.0.1:9",
@@ -58,9 +61,9 @@ def camera(monkeypatch, wall):
 
 def test_a_slow_simulation_skips_ahead_stays_live_and_says_so(camera, monkeypatch, caplog):
     camera, wall, _ = camera
-    monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=0.4))
+    monkeypatch.setattr("eventocc.receiver.sim.simulate", simulation_at(wall, speed=0.4))
     late_s = []
-    with caplog.at_level(logging.INFO, logger="receiver.virtual_camera"):
+    with caplog.at_level(logging.INFO, logger="eventocc.receiver.live.virtual_camera"):
         for events in itertools.islice(camera.chunks(), 2000):  # 10 s of events at most
             if camera.skips == 3:
                 break
@@ -76,7 +79,7 @@ def test_a_slow_simulation_skips_ahead_stays_live_and_says_so(camera, monkeypatc
 
 def test_event_time_jumps_to_the_wall_clock_at_a_skip(camera, monkeypatch):
     camera, wall, _ = camera
-    monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=0.4))
+    monkeypatch.setattr("eventocc.receiver.sim.simulate", simulation_at(wall, speed=0.4))
     previous_end, gaps = 0, []
     for events in itertools.islice(camera.chunks(), 2000):
         if camera.skips == 2:
@@ -92,7 +95,7 @@ def test_a_skip_keeps_the_screens_timeline(camera, monkeypatch):
     # As for a real camera that dropped events: refresh k is still on screen from the same
     # time, so the receiver's frame clock holds across the gap.
     camera, wall, _ = camera
-    monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=0.4))
+    monkeypatch.setattr("eventocc.receiver.sim.simulate", simulation_at(wall, speed=0.4))
     starts: list[int] = []
     monkeypatch.setattr(camera, "scene", lambda encoder, showing: starts.append(showing.frame_now))
     first_events: list[int] = []
@@ -114,7 +117,7 @@ def test_a_skip_keeps_the_hand_held_camera_on_its_path(camera, monkeypatch):
     # gap (a wander restarted elsewhere looked like a jolt and lost it).
     camera, wall, _ = camera
     camera.motion = "handheld"
-    monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=0.4))
+    monkeypatch.setattr("eventocc.receiver.sim.simulate", simulation_at(wall, speed=0.4))
     encoder = StreamEncoder(b"path", profile="robust", cells=16)
     scenes, chunks = [], [0]
 
@@ -135,7 +138,7 @@ def test_a_skip_keeps_the_hand_held_camera_on_its_path(camera, monkeypatch):
 
 def test_a_simulation_faster_than_real_time_is_paced_and_never_skips(camera, monkeypatch):
     camera, wall, _ = camera
-    monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=3.0))
+    monkeypatch.setattr("eventocc.receiver.sim.simulate", simulation_at(wall, speed=3.0))
     for events in itertools.islice(camera.chunks(), 200):  # 1 s of events
         assert wall.now >= camera.clock.due_s(int(events["t"][-1])), "no chunk arrives early"
     assert camera.skips == 0 and camera.speed == 1.0
@@ -150,17 +153,17 @@ def test_the_first_chunk_may_take_long_to_compile_and_is_not_late(camera, monkey
         wall.now += 20.0  # numba compiles the simulator's kernels on first use
         yield from simulate(scene, duration_s, chunk_us)
 
-    monkeypatch.setattr("receiver.sim.simulate", compiling_first)
+    monkeypatch.setattr("eventocc.receiver.sim.simulate", compiling_first)
     list(itertools.islice(camera.chunks(), 100))
     assert camera.skips == 0 and camera.speed == 1.0
 
 
 def test_the_camera_follows_the_transmitter_to_another_stream(camera, monkeypatch, caplog):
     camera, wall, showing = camera
-    monkeypatch.setattr("receiver.sim.simulate", simulation_at(wall, speed=2.0))
+    monkeypatch.setattr("eventocc.receiver.sim.simulate", simulation_at(wall, speed=2.0))
     fast_12 = LinkSettings("fast", 12)
     links = []
-    with caplog.at_level(logging.INFO, logger="receiver.virtual_camera"):
+    with caplog.at_level(logging.INFO, logger="eventocc.receiver.live.virtual_camera"):
         for i, _ in enumerate(itertools.islice(camera.chunks(), 100)):
             links.append(camera.link)
             if i == 30:

@@ -8,7 +8,7 @@ import reedsolo
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from occ.fec import PAPER_RS_K, ReedSolomon, paper_rs
+from eventocc.occ.fec import PAPER_RS_K, ReedSolomon, paper_rs
 
 
 @settings(max_examples=25, deadline=None)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from occ.framing import (
+from eventocc.occ.framing import (
     FrameHeader,
     FramingError,
     bytes_to_cells,

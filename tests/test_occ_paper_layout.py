@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import reedsolo
 
-from occ.stream import StreamEncoder
+from eventocc.occ.stream import StreamEncoder
 
 PAPER_K = {16: 251, 32: 247, 48: 239, 64: 223, 80: 159, 96: 127}
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pydantic
 import pytest
 
-from occ.report import (
+from eventocc.occ.report import (
     FrameStats,
     HealthReport,
     Hello,
@@ -16,7 +16,7 @@ from occ.report import (
     TrackingState,
     parse_report,
 )
-from occ.stream import StreamDecoder, StreamEncoder
+from eventocc.occ.stream import StreamDecoder, StreamEncoder
 
 REPORTS = [
     PoseReport(

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from occ.frame_codec import FrameCodec
-from occ.stream import StreamDecoder, StreamEncoder
+from eventocc.occ.frame_codec import FrameCodec
+from eventocc.occ.stream import StreamDecoder, StreamEncoder
 
 FRAMED = ("robust", "fast")
 

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from bench.tracking import CAMERA, MESSAGE, hand_held_config, hand_held_scene
-from receiver.pipeline.config import DecoderParams, ReceiverConfig
-from receiver.pipeline.decoder import _ALIGN_SHIFTS, CellReader
-from receiver.pipeline.receiver import MessageOutput, Receiver
-from receiver.pipeline.report import DecodeLog, FrameTruth
-from receiver.poses import invert
-from receiver.sim import simulate
+from eventocc.receiver.pipeline.config import DecoderParams, ReceiverConfig
+from eventocc.receiver.pipeline.decoder import _ALIGN_SHIFTS, CellReader
+from eventocc.receiver.pipeline.receiver import MessageOutput, Receiver
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.poses import invert
+from eventocc.receiver.sim import simulate
 from tests.cells import locator_block
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from bench.tracking import CAMERA
-from receiver.pipeline.buffer import EventColumns
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.decoder import CellReader
-from receiver.poses import invert
-from receiver.sim.motion import look_at
+from eventocc.receiver.pipeline.buffer import EventColumns
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.decoder import CellReader
+from eventocc.receiver.poses import invert
+from eventocc.receiver.sim.motion import look_at
 from tests.cells import locator_block
 
 CONFIG = ReceiverConfig(CAMERA, cells=16)

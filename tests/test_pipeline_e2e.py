@@ -7,15 +7,22 @@ import json
 import numpy as np
 import pytest
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.cli import main as cli_main
-from receiver.events import make_events
-from receiver.pipeline.config import DecoderParams, ReceiverConfig
-from receiver.pipeline.metrics import pose_errors
-from receiver.pipeline.receiver import Receiver
-from receiver.pipeline.report import DecodeLog, FrameTruth
-from receiver.sim import Display, HandHeldMotion, Scene, SensorModel, StaticMotion, simulate
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.cli import main as cli_main
+from eventocc.receiver.events import make_events
+from eventocc.receiver.pipeline.config import DecoderParams, ReceiverConfig
+from eventocc.receiver.pipeline.metrics import pose_errors
+from eventocc.receiver.pipeline.receiver import Receiver
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.sim import (
+    Display,
+    HandHeldMotion,
+    Scene,
+    SensorModel,
+    StaticMotion,
+    simulate,
+)
 
 # A small sensor whose focal length makes the 0.272 m marker fill it from 0.6 m.
 CAMERA = CameraModel(346, 260, np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]]))
@@ -224,7 +231,7 @@ def test_noise_without_marker_reports_why_nothing_locked():
 
 
 def test_decode_cli_writes_message_trajectory_and_report(tmp_path, capsys):
-    from receiver.io import write_events
+    from eventocc.receiver.io import write_events
 
     scene = _scene("robust", STATIC, cells=20)  # the link settings come from the scene
     rec = simulate(scene, duration_s=1.6, chunk_us=10_000)
@@ -271,7 +278,7 @@ def test_decode_cli_writes_message_trajectory_and_report(tmp_path, capsys):
 
 def test_decode_cli_reports_a_calibration_that_does_not_fit(tmp_path, capsys):
     path = tmp_path / "rec.dat"
-    from receiver.io import write_events
+    from eventocc.receiver.io import write_events
 
     write_events(path, [make_events([0, 10], [400, 5], [5, 5], [1, -1])], width=640, height=480)
     (tmp_path / "scene.json").write_text(json.dumps(_scene("robust", STATIC).describe()))

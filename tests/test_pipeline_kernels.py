@@ -14,13 +14,13 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from receiver.camera import CameraModel
-from receiver.events import make_events
-from receiver.pipeline.buffer import to_columns
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.locate import Box, events_between, outline, quadrilateral
-from receiver.pipeline.pose import _residuals, project_ideal
-from receiver.pipeline.tracker import (
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.events import make_events
+from eventocc.receiver.pipeline.buffer import to_columns
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.locate import Box, events_between, outline, quadrilateral
+from eventocc.receiver.pipeline.pose import _residuals, project_ideal
+from eventocc.receiver.pipeline.tracker import (
     _CARRY_US,
     _VELOCITY_SPAN_US,
     EdgeTracker,
@@ -29,8 +29,8 @@ from receiver.pipeline.tracker import (
     _nearest_edge,
     _reassign,
 )
-from receiver.pipeline.triage import TILE, EventTriage
-from receiver.poses import make_pose
+from eventocc.receiver.pipeline.triage import TILE, EventTriage
+from eventocc.receiver.poses import make_pose
 
 K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
 WIDTH, HEIGHT = 64, 48

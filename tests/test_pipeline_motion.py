@@ -14,13 +14,13 @@ from scipy.spatial.transform import Rotation
 from bench.experiments.eventcam import HAND_HELD_TRACKER, clip_message
 from bench.experiments.eventcam import hand_held_scene as paper_hand_held_scene
 from bench.tracking import CAMERA, hand_held_config, hand_held_scene
-from occ.marker import MarkerGeometry, render
-from occ.stream import StreamDecoder, StreamEncoder
-from receiver.events import EVENT_DTYPE, make_events
-from receiver.pipeline import receiver as receiver_module
-from receiver.pipeline.buffer import to_columns
-from receiver.pipeline.config import DecoderParams, DetectorParams, ReceiverConfig
-from receiver.pipeline.detector import (
+from eventocc.occ.marker import MarkerGeometry, render
+from eventocc.occ.stream import StreamDecoder, StreamEncoder
+from eventocc.receiver.events import EVENT_DTYPE, make_events
+from eventocc.receiver.pipeline import receiver as receiver_module
+from eventocc.receiver.pipeline.buffer import to_columns
+from eventocc.receiver.pipeline.config import DecoderParams, DetectorParams, ReceiverConfig
+from eventocc.receiver.pipeline.detector import (
     Detection,
     blinking_region,
     locator_cells,
@@ -30,7 +30,7 @@ from receiver.pipeline.detector import (
     ring_support,
     turn_readings,
 )
-from receiver.pipeline.locate import (
+from eventocc.receiver.pipeline.locate import (
     Box,
     MarkerNotFound,
     compensated_burst,
@@ -44,8 +44,8 @@ from receiver.pipeline.locate import (
     slow_flow,
     warped_counts,
 )
-from receiver.pipeline.pose import pnp, project_ideal
-from receiver.pipeline.receiver import (
+from eventocc.receiver.pipeline.pose import pnp, project_ideal
+from eventocc.receiver.pipeline.receiver import (
     DETECTING,
     TRACKING,
     FrameOutput,
@@ -53,8 +53,8 @@ from receiver.pipeline.receiver import (
     Receiver,
     StateChange,
 )
-from receiver.pipeline.tracker import edge_polarities
-from receiver.sim import Recording, StaticMotion, simulate
+from eventocc.receiver.pipeline.tracker import edge_polarities
+from eventocc.receiver.sim import Recording, StaticMotion, simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from receiver.camera import CameraModel
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.smoothing import PoseSmoother
-from receiver.poses import make_pose
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.smoothing import PoseSmoother
+from eventocc.receiver.poses import make_pose
 
 HALF_US = 5000
 

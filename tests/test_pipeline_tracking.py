@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.pipeline import tracker as tracker_module
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.metrics import pose_errors
-from receiver.pipeline.pose import project_ideal
-from receiver.pipeline.receiver import (
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.pipeline import tracker as tracker_module
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.metrics import pose_errors
+from eventocc.receiver.pipeline.pose import project_ideal
+from eventocc.receiver.pipeline.receiver import (
     DETECTING,
     TRACKING,
     FrameOutput,
@@ -24,11 +24,11 @@ from receiver.pipeline.receiver import (
     PoseEstimate,
     Receiver,
 )
-from receiver.pipeline.report import DecodeLog, FrameTruth
-from receiver.pipeline.tracker import EdgeTracker, _nearest_edge
-from receiver.poses import invert, make_pose, write_tum
-from receiver.sim import Display, Scene, SensorModel, TumMotion, simulate
-from receiver.sim.motion import look_at
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.tracker import EdgeTracker, _nearest_edge
+from eventocc.receiver.poses import invert, make_pose, write_tum
+from eventocc.receiver.sim import Display, Scene, SensorModel, TumMotion, simulate
+from eventocc.receiver.sim.motion import look_at
 
 K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
 CAMERA = CameraModel(346, 260, K)

@@ -8,26 +8,26 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
-from occ.marker import MarkerGeometry
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.events import make_events
-from receiver.pipeline.buffer import EventBuffer, first_at, to_columns
-from receiver.pipeline.config import DecoderParams, FilterParams, ReceiverConfig
-from receiver.pipeline.decoder import CellReader, FrameClock, cell_side_px, read_stride
-from receiver.pipeline.detector import (
+from eventocc.occ.marker import MarkerGeometry
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.events import make_events
+from eventocc.receiver.pipeline.buffer import EventBuffer, first_at, to_columns
+from eventocc.receiver.pipeline.config import DecoderParams, FilterParams, ReceiverConfig
+from eventocc.receiver.pipeline.decoder import CellReader, FrameClock, cell_side_px, read_stride
+from eventocc.receiver.pipeline.detector import (
     MarkerNotFound,
     blink_phase,
     check_quadrilateral,
     locator_band,
     quadrilateral,
 )
-from receiver.pipeline.filters import EventFilter
-from receiver.pipeline.metrics import pose_errors, umeyama
-from receiver.pipeline.pose import PoseHistory, project_ideal, refine_pose
-from receiver.pipeline.report import FrameTruth
-from receiver.pipeline.triage import EventTriage
-from receiver.poses import make_pose
+from eventocc.receiver.pipeline.filters import EventFilter
+from eventocc.receiver.pipeline.metrics import pose_errors, umeyama
+from eventocc.receiver.pipeline.pose import PoseHistory, project_ideal, refine_pose
+from eventocc.receiver.pipeline.report import FrameTruth
+from eventocc.receiver.pipeline.triage import EventTriage
+from eventocc.receiver.poses import make_pose
 
 K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
 SIZE = 0.272

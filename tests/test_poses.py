@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from receiver.poses import (
+from eventocc.receiver.poses import (
     TrajectoryFileError,
     format_seconds,
     invert,

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.cli import main
-from receiver.sim import HandHeldMotion, Scene, SensorModel, StaticMotion, simulate
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.cli import main
+from eventocc.receiver.sim import HandHeldMotion, Scene, SensorModel, StaticMotion, simulate
 
 SMALL = CameraModel.paper().resized(160, 120)
 

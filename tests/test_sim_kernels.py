@@ -9,11 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.events import EVENT_DTYPE, concat
-from receiver.poses import make_pose
-from receiver.sim import (
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.events import EVENT_DTYPE, concat
+from eventocc.receiver.poses import make_pose
+from eventocc.receiver.sim import (
     Display,
     HandHeldMotion,
     Scene,
@@ -23,8 +23,8 @@ from receiver.sim import (
     render,
     simulate,
 )
-from receiver.sim.motion import image_box
-from receiver.sim.sensor import BackgroundNoise, to_events
+from eventocc.receiver.sim.motion import image_box
+from eventocc.receiver.sim.sensor import BackgroundNoise, to_events
 
 CAM = CameraModel.paper().resized(160, 120)
 MESSAGE = bytes(range(256))

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.events import concat
-from receiver.poses import make_pose, write_tum
-from receiver.sim import (
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.events import concat
+from eventocc.receiver.poses import make_pose, write_tum
+from eventocc.receiver.sim import (
     Display,
     HandHeldMotion,
     Optics,
@@ -19,9 +19,9 @@ from receiver.sim import (
     moving,
     simulate,
 )
-from receiver.sim.optics import flat_poses, rays_to_plane, sample_rays
-from receiver.sim.render import plane_geometry, regions
-from receiver.sim.sensor import EventBuffer
+from eventocc.receiver.sim.optics import flat_poses, rays_to_plane, sample_rays
+from eventocc.receiver.sim.render import plane_geometry, regions
+from eventocc.receiver.sim.sensor import EventBuffer
 
 CAM = CameraModel.paper().resized(200, 150)
 MESSAGE = bytes(range(256))

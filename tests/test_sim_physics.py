@@ -8,11 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.events import concat
-from receiver.poses import invert, make_pose, write_tum
-from receiver.sim import (
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.events import concat
+from eventocc.receiver.poses import invert, make_pose, write_tum
+from eventocc.receiver.sim import (
     Display,
     HandHeldMotion,
     Optics,
@@ -22,7 +22,7 @@ from receiver.sim import (
     TumMotion,
     simulate,
 )
-from receiver.sim.motion import project_points
+from eventocc.receiver.sim.motion import project_points
 
 SMALL = CameraModel.paper().resized(240, 180)
 MESSAGE = bytes(range(256)) * 4

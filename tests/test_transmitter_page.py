@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from occ.marker import render
-from occ.stream import StreamEncoder
-from server.demo import bound_url, start_server
-from server.settings import Settings
+from eventocc.occ.marker import render
+from eventocc.occ.stream import StreamEncoder
+from eventocc.server.demo import bound_url, start_server
+from eventocc.server.settings import Settings
 
 pytestmark = pytest.mark.browser
 

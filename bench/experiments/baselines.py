@@ -28,9 +28,9 @@ from bench.experiments.eventcam import (
     run_event_receiver,
 )
 from bench.framecam import FrameCamera, Slideshow
-from occ.stream import StreamEncoder
-from receiver.sim import Scene
-from receiver.sim.motion import project_points
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.sim import Scene
+from eventocc.receiver.sim.motion import project_points
 
 FLOW_EDGES = (0.0, 1.0, 2.0, 3.0, 5.0, 8.0)
 """Bins of the marker's mean optical flow (paper px/ms) for the success-rate plot."""

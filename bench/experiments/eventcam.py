@@ -9,14 +9,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.tracking import POSE_GAP_US, WRONG_M, hand_held_config
-from occ.profiles import get_profile
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.pipeline.config import ReceiverConfig, TrackerParams
-from receiver.pipeline.metrics import held_s
-from receiver.pipeline.receiver import FrameOutput, Output, Receiver
-from receiver.pipeline.report import DecodeLog, FrameTruth
-from receiver.sim import HandHeldMotion, Scene, SensorModel, simulate
+from eventocc.occ.profiles import get_profile
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.pipeline.config import ReceiverConfig, TrackerParams
+from eventocc.receiver.pipeline.metrics import held_s
+from eventocc.receiver.pipeline.receiver import FrameOutput, Output, Receiver
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.sim import HandHeldMotion, Scene, SensorModel, simulate
 
 Sensor = tuple[int, int] | None
 """A smaller sensor (width, height) standing in for the paper's 1280 x 720 one, which None

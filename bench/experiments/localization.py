@@ -22,9 +22,9 @@ from bench.experiments.eventcam import (
     hand_held_scene,
     run_event_receiver,
 )
-from occ.stream import StreamEncoder
-from receiver.pipeline.metrics import pose_errors, umeyama
-from receiver.sim import Scene
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.pipeline.metrics import pose_errors, umeyama
+from eventocc.receiver.sim import Scene
 
 SEQUENCES = ((1, 0.6), (2, 0.8), (3, 1.0), (4, 1.2), (5, 1.5))
 """(seed, mean marker flow in the paper's px/ms) of the five sequences."""

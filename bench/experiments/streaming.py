@@ -14,11 +14,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 from bench.experiments.eventcam import Sensor, camera, clip_message, raw_bps, run_event_receiver
-from occ.marker import MarkerGeometry
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.sim import Display, Scene, SensorModel, StaticMotion
-from receiver.sim.scene import marker_size_for_cell_px
+from eventocc.occ.marker import MarkerGeometry
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.sim import Display, Scene, SensorModel, StaticMotion
+from eventocc.receiver.sim.scene import marker_size_for_cell_px
 
 DISTANCE_M = 1.25
 PAPER_CELL_PX = {16: 30, 32: 18, 48: 13, 64: 10, 80: 8, 96: 7}

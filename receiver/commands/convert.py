@@ -6,7 +6,7 @@ import argparse
 
 from tqdm import tqdm
 
-from receiver.io import READ_FORMATS, WRITE_FORMATS, read_events, write_events
+from eventocc.receiver.io import READ_FORMATS, WRITE_FORMATS, read_events, write_events
 
 
 def run(args: argparse.Namespace) -> int:

@@ -8,10 +8,10 @@ import logging
 import sys
 from pathlib import Path
 
-from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.receiver import Receiver
-from receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.receiver import Receiver
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ def _link_settings(args: argparse.Namespace, scene) -> None:
 
 def _camera(args: argparse.Namespace, scene):
     if args.calibration is not None:
-        from receiver.calibration import load_calibration
+        from eventocc.receiver.calibration import load_calibration
 
         return load_calibration(args.calibration)
     if scene is not None:
@@ -107,11 +107,11 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from receiver.io import read_events
+    from eventocc.receiver.io import read_events
 
     scene = None
     if args.scene is not None:
-        from receiver.sim import Scene
+        from eventocc.receiver.sim import Scene
 
         scene = Scene.from_dict(json.loads(args.scene.read_text()))
     _link_settings(args, scene)

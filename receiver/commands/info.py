@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from tqdm import tqdm
 
-from receiver.io import READ_FORMATS, EventStream, read_events
+from eventocc.receiver.io import READ_FORMATS, EventStream, read_events
 
 
 @dataclass(frozen=True)

@@ -25,12 +25,20 @@ import sys
 import threading
 from pathlib import Path
 
-from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
-from receiver.camera import CameraModel
-from receiver.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder, Screen, describe
-from receiver.screen import ScreenWatch, TransmitterClient
-from receiver.sources import EventSource, LinkSettings, RecordingSource, SourceError, open_source
-from receiver.virtual_camera import DEFAULT_MOTION, MOTIONS, VirtualCamera
+from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES, LinkSettings
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.live.daemon import (
+    Daemon,
+    DaemonConfig,
+    LinkFollower,
+    OutputFolder,
+    Screen,
+    describe,
+)
+from eventocc.receiver.live.screen import ScreenWatch, TransmitterClient
+from eventocc.receiver.live.sources import EventSource, RecordingSource, SourceError
+from eventocc.receiver.live.uri import open_source
+from eventocc.receiver.live.virtual_camera import DEFAULT_MOTION, MOTIONS, VirtualCamera
 
 log = logging.getLogger(__name__)
 
@@ -128,11 +136,11 @@ def websocket_url(http_url: str) -> str:
 
 def _camera(args: argparse.Namespace) -> CameraModel:
     if args.calibration is not None:
-        from receiver.calibration import load_calibration
+        from eventocc.receiver.calibration import load_calibration
 
         return load_calibration(args.calibration)
     if args.source.startswith("sim:"):
-        from receiver.virtual_camera import default_camera
+        from eventocc.receiver.live.virtual_camera import default_camera
 
         return default_camera()
     return CameraModel.paper()
@@ -151,10 +159,10 @@ def _screen(source: EventSource, server_url: str) -> tuple[Screen | None, LinkSe
 
 
 def _run(args: argparse.Namespace) -> int:
-    from receiver.pipeline.config import LIVE_CPU_SHARE, DetectorParams, ReceiverConfig
-    from receiver.pipeline.receiver import Receiver
-    from receiver.publisher import Publisher
-    from receiver.spool import Spool
+    from eventocc.receiver.live.publisher import Publisher
+    from eventocc.receiver.live.spool import Spool
+    from eventocc.receiver.pipeline.config import LIVE_CPU_SHARE, DetectorParams, ReceiverConfig
+    from eventocc.receiver.pipeline.receiver import Receiver
 
     camera = _camera(args)
     source = open_source(

@@ -6,11 +6,18 @@ import argparse
 import logging
 from pathlib import Path
 
-from occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
-from occ.stream import StreamEncoder
-from receiver.sim import HandHeldMotion, Scene, SensorModel, StaticMotion, TumMotion, simulate
-from receiver.sim.recording import write_recording
-from receiver.sim.sensor import PRESETS
+from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.sim import (
+    HandHeldMotion,
+    Scene,
+    SensorModel,
+    StaticMotion,
+    TumMotion,
+    simulate,
+)
+from eventocc.receiver.sim.recording import write_recording
+from eventocc.receiver.sim.sensor import PRESETS
 
 log = logging.getLogger(__name__)
 

@@ -19,16 +19,22 @@ from pathlib import Path
 
 import numpy as np
 
-from receiver.events import rechunk_by_count, rechunk_by_time
-from receiver.io.aedat import open_aedat4
-from receiver.io.dat import is_dat_header, open_dat, write_dat
-from receiver.io.errors import EventFileError, MissingExtraError
-from receiver.io.npz_h5 import open_hdf5, open_npz, write_hdf5, write_npz
-from receiver.io.prophesee_header import read_header
-from receiver.io.prophesee_raw import ENCODINGS, header_encoding, open_raw, write_evt2, write_evt3
-from receiver.io.rosbag import is_bag_dir, open_rosbag
-from receiver.io.stream import EventStream
-from receiver.io.text import open_text, write_text
+from eventocc.receiver.events import rechunk_by_count, rechunk_by_time
+from eventocc.receiver.io.aedat import open_aedat4
+from eventocc.receiver.io.dat import is_dat_header, open_dat, write_dat
+from eventocc.receiver.io.errors import EventFileError, MissingExtraError
+from eventocc.receiver.io.npz_h5 import open_hdf5, open_npz, write_hdf5, write_npz
+from eventocc.receiver.io.prophesee_header import read_header
+from eventocc.receiver.io.prophesee_raw import (
+    ENCODINGS,
+    header_encoding,
+    open_raw,
+    write_evt2,
+    write_evt3,
+)
+from eventocc.receiver.io.rosbag import is_bag_dir, open_rosbag
+from eventocc.receiver.io.stream import EventStream
+from eventocc.receiver.io.text import open_text, write_text
 
 __all__ = [
     "READ_FORMATS",
@@ -139,7 +145,7 @@ def read_events(
     on_error: str = "raise",
     monotonic: bool = False,
 ) -> EventStream:
-    """Stream the events of a file as chunks of ``receiver.events.EVENT_DTYPE``.
+    """Stream the events of a file as chunks of ``eventocc.receiver.events.EVENT_DTYPE``.
 
     ``chunk_events`` / ``chunk_us`` re-cut the chunks by count or time window (at most one).
     ``on_error="stop"`` turns a truncated or corrupt file into a ``UserWarning`` and a clean

@@ -8,9 +8,9 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
-from receiver.events import make_events
-from receiver.io.errors import EventFileError, MissingExtraError
-from receiver.io.stream import EventChecker, EventStream, Progressed
+from eventocc.receiver.events import make_events
+from eventocc.receiver.io.errors import EventFileError, MissingExtraError
+from eventocc.receiver.io.stream import EventChecker, EventStream, Progressed
 
 
 def _decoder(path: Path):

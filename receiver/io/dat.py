@@ -13,10 +13,10 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from receiver.events import EVENT_DTYPE
-from receiver.io.errors import EventFileError
-from receiver.io.prophesee_header import header_geometry, read_header, write_header
-from receiver.io.stream import (
+from eventocc.receiver.events import EVENT_DTYPE
+from eventocc.receiver.io.errors import EventFileError
+from eventocc.receiver.io.prophesee_header import header_geometry, read_header, write_header
+from eventocc.receiver.io.stream import (
     BLOCK_BYTES,
     EventChecker,
     EventStream,

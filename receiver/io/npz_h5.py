@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from receiver.events import EVENT_DTYPE, concat
-from receiver.io.errors import EventFileError, MissingExtraError
-from receiver.io.stream import (
+from eventocc.receiver.events import EVENT_DTYPE, concat
+from eventocc.receiver.io.errors import EventFileError, MissingExtraError
+from eventocc.receiver.io.stream import (
     EventChecker,
     EventStream,
     Progressed,

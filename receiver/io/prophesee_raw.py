@@ -15,10 +15,15 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from receiver.events import EVENT_DTYPE
-from receiver.io.errors import EventFileError
-from receiver.io.prophesee_header import format_fields, header_geometry, read_header, write_header
-from receiver.io.stream import (
+from eventocc.receiver.events import EVENT_DTYPE
+from eventocc.receiver.io.errors import EventFileError
+from eventocc.receiver.io.prophesee_header import (
+    format_fields,
+    header_geometry,
+    read_header,
+    write_header,
+)
+from eventocc.receiver.io.stream import (
     BLOCK_BYTES,
     MAX_TIME_REVERSAL_US,
     EventStream,

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from receiver.events import EVENT_DTYPE
-from receiver.io.errors import EventFileError, MissingExtraError
-from receiver.io.stream import EventChecker, EventStream, Progressed
+from eventocc.receiver.events import EVENT_DTYPE
+from eventocc.receiver.io.errors import EventFileError, MissingExtraError
+from eventocc.receiver.io.stream import EventChecker, EventStream, Progressed
 
 log = logging.getLogger(__name__)
 

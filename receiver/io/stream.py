@@ -9,7 +9,7 @@ from typing import BinaryIO
 import numba
 import numpy as np
 
-from receiver.events import EVENT_DTYPE
+from eventocc.receiver.events import EVENT_DTYPE
 
 # Real sensors reorder events by ~10 us; a step back this large means a corrupt file.
 MAX_TIME_REVERSAL_US = 1_000_000

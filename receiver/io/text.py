@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from receiver.events import EVENT_DTYPE
-from receiver.io.errors import EventFileError
-from receiver.io.stream import (
+from eventocc.receiver.events import EVENT_DTYPE
+from eventocc.receiver.io.errors import EventFileError
+from eventocc.receiver.io.stream import (
     EventChecker,
     EventStream,
     Progressed,

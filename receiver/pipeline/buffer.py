@@ -14,7 +14,7 @@ from dataclasses import dataclass, fields
 import numba
 import numpy as np
 
-from receiver.events import EVENT_DTYPE
+from eventocc.receiver.events import EVENT_DTYPE
 
 
 @dataclass(frozen=True)

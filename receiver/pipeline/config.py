@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from occ.marker import MarkerGeometry
-from occ.profiles import get_profile
-from receiver.camera import CameraModel
+from eventocc.occ.marker import MarkerGeometry
+from eventocc.occ.profiles import get_profile
+from eventocc.receiver.camera import CameraModel
 
 
 @dataclass(frozen=True)

@@ -50,10 +50,10 @@ from dataclasses import dataclass, field, replace
 import numba
 import numpy as np
 
-from receiver.pipeline.buffer import EventColumns
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.detector import ring_cells, turn_readings
-from receiver.pipeline.pose import plane_homography, project_ideal
+from eventocc.receiver.pipeline.buffer import EventColumns
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.detector import ring_cells, turn_readings
+from eventocc.receiver.pipeline.pose import plane_homography, project_ideal
 
 _HISTORY = 32
 """Frames in the clock fit: long enough to average jitter, short enough to follow drift."""

@@ -54,10 +54,10 @@ import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from occ.marker import MarkerGeometry
-from receiver.pipeline.buffer import EventColumns, first_at, to_columns
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.locate import (
+from eventocc.occ.marker import MarkerGeometry
+from eventocc.receiver.pipeline.buffer import EventColumns, first_at, to_columns
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.locate import (
     HALF_WINDOW,
     Box,
     CompensatedBurst,
@@ -73,8 +73,8 @@ from receiver.pipeline.locate import (
     outline,
     quadrilateral,
 )
-from receiver.pipeline.pose import pnp, project_ideal
-from receiver.pipeline.tracker import EdgeTracker, _nearest_edge, edge_polarities
+from eventocc.receiver.pipeline.pose import pnp, project_ideal
+from eventocc.receiver.pipeline.tracker import EdgeTracker, _nearest_edge, edge_polarities
 
 TILE_PX = 8
 """Side of the blink map's tiles: a couple of cells at the smallest accepted marker."""

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from receiver.pipeline.config import FilterParams
+from eventocc.receiver.pipeline.config import FilterParams
 
 _NEVER = np.iinfo(np.int64).min // 2
 

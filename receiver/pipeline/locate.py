@@ -31,8 +31,8 @@ import cv2
 import numba
 import numpy as np
 
-from receiver.pipeline.buffer import first_at
-from receiver.pipeline.config import DetectorParams
+from eventocc.receiver.pipeline.buffer import first_at
+from eventocc.receiver.pipeline.config import DetectorParams
 
 MAX_FLOW_PX_PER_MS = 12.0
 """Largest image flow searched: the peaks of a fast sweep on the paper's 1280x720 sensor (its

@@ -12,8 +12,8 @@ import cv2
 import numba
 import numpy as np
 
-from receiver.camera import CameraModel
-from receiver.poses import make_pose
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.poses import make_pose
 
 
 def pnp(corners_px: np.ndarray, world: np.ndarray, camera: CameraModel) -> np.ndarray:

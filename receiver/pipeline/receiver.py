@@ -40,18 +40,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occ.profiles import get_profile
-from occ.stream import ReceivedMessage, StreamDecoder
-from receiver.pipeline.buffer import EventBuffer, to_columns
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.decoder import CellReader, FrameRead, cell_side_px, read_stride
-from receiver.pipeline.detector import Detection, MarkerNotFound, detect, nearest_turn
-from receiver.pipeline.filters import EventFilter
-from receiver.pipeline.pose import PoseHistory, project_ideal
-from receiver.pipeline.smoothing import PoseSmoother
-from receiver.pipeline.tracker import EdgeTracker
-from receiver.pipeline.triage import EventTriage
-from receiver.poses import invert
+from eventocc.occ.profiles import get_profile
+from eventocc.occ.stream import ReceivedMessage, StreamDecoder
+from eventocc.receiver.pipeline.buffer import EventBuffer, to_columns
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.decoder import CellReader, FrameRead, cell_side_px, read_stride
+from eventocc.receiver.pipeline.detector import Detection, MarkerNotFound, detect, nearest_turn
+from eventocc.receiver.pipeline.filters import EventFilter
+from eventocc.receiver.pipeline.pose import PoseHistory, project_ideal
+from eventocc.receiver.pipeline.smoothing import PoseSmoother
+from eventocc.receiver.pipeline.tracker import EdgeTracker
+from eventocc.receiver.pipeline.triage import EventTriage
+from eventocc.receiver.poses import invert
 
 log = logging.getLogger(__name__)
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from receiver.pipeline.metrics import best_alignment
-from receiver.pipeline.receiver import (
+from eventocc.receiver.pipeline.metrics import best_alignment
+from eventocc.receiver.pipeline.receiver import (
     FrameOutput,
     MessageOutput,
     Output,
@@ -21,7 +21,7 @@ from receiver.pipeline.receiver import (
     Receiver,
     StateChange,
 )
-from receiver.poses import write_tum
+from eventocc.receiver.poses import write_tum
 
 
 class FrameTruth:
@@ -44,7 +44,7 @@ class FrameTruth:
 
     def _shown(self, k: int) -> np.ndarray:
         """The payload cells of refresh ``k``; blank before the stream's first, as the screen
-        shows them (``receiver.sim.display``)."""
+        shows them (``eventocc.receiver.sim.display``)."""
         geo = self.encoder.geometry
         return geo.payload_of(self.encoder.frame(k) if k >= 0 else geo.blank_frame)
 

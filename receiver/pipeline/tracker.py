@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.pose import project_ideal, refine_pose
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.pose import project_ideal, refine_pose
 
 _MIN_FILL = 0.25
 """An edge's indicator counts only once this share of its bins holds events (noise alone rarely

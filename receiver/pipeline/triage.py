@@ -39,7 +39,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from receiver.pipeline.buffer import EventColumns, ideal_coordinates
+from eventocc.receiver.pipeline.buffer import EventColumns, ideal_coordinates
 
 TILE = 4
 """Side of the tracker-mask tiles in pixels, a power of two (tile = pixel >> _SHIFT)."""

@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from occ.marker import MarkerGeometry
+from eventocc.occ.marker import MarkerGeometry
 
 LUX_TO_NITS_PER_REFLECTANCE = 1.0 / math.pi
 """Luminance (cd/m²) of a Lambertian surface of reflectance 1 under 1 lux."""

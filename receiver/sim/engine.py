@@ -12,14 +12,14 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from receiver.events import EVENT_DTYPE, empty_events
-from receiver.sim.display import DisplayTimeline
-from receiver.sim.motion import image_box
-from receiver.sim.moving import MovingRenderer
-from receiver.sim.optics import centre_rays, rays_to_plane, sample_rays
-from receiver.sim.render import StaticRenderer
-from receiver.sim.scene import Scene
-from receiver.sim.sensor import BackgroundNoise, PixelArray, background_rates, to_events
+from eventocc.receiver.events import EVENT_DTYPE, empty_events
+from eventocc.receiver.sim.display import DisplayTimeline
+from eventocc.receiver.sim.motion import image_box
+from eventocc.receiver.sim.moving import MovingRenderer
+from eventocc.receiver.sim.optics import centre_rays, rays_to_plane, sample_rays
+from eventocc.receiver.sim.render import StaticRenderer
+from eventocc.receiver.sim.scene import Scene
+from eventocc.receiver.sim.sensor import BackgroundNoise, PixelArray, background_rates, to_events
 
 _MARGIN_PX = 4.0
 """Pixels beyond the marker's outline that may still see it (blur, footprint)."""

@@ -15,8 +15,8 @@ from typing import Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from receiver.camera import CameraModel
-from receiver.poses import invert, make_pose, read_tum
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.poses import invert, make_pose, read_tum
 
 
 @dataclass(frozen=True)

@@ -32,9 +32,9 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from receiver.sim.display import DisplayTimeline
-from receiver.sim.motion import Trajectory, image_box, project_points
-from receiver.sim.optics import (
+from eventocc.receiver.sim.display import DisplayTimeline
+from eventocc.receiver.sim.motion import Trajectory, image_box, project_points
+from eventocc.receiver.sim.optics import (
     POSE_C,
     POSE_R,
     centre_rays,
@@ -43,7 +43,7 @@ from receiver.sim.optics import (
     rays_to_plane,
     sample_offsets,
 )
-from receiver.sim.render import (
+from eventocc.receiver.sim.render import (
     _LADDER_RATIO,
     _LADDER_START,
     SCREEN,
@@ -52,7 +52,7 @@ from receiver.sim.render import (
     plane_geometry,
     render_segment,
 )
-from receiver.sim.sensor import (
+from eventocc.receiver.sim.sensor import (
     EVENT_OUT_DTYPE,
     LAST,
     LEVEL,

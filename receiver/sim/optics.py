@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 import numba
 import numpy as np
 
-from receiver.camera import CameraModel
+from eventocc.receiver.camera import CameraModel
 
 
 @dataclass(frozen=True)

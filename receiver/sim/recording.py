@@ -1,7 +1,7 @@
 """Write a simulated recording to a directory: events, ground truth and the scene.
 
-- ``events.<ext>``: the event stream (any format ``receiver.io.write_events`` knows; EVT 3.0
-  ``.raw`` by default), written chunk by chunk;
+- ``events.<ext>``: the event stream (any format ``eventocc.receiver.io.write_events`` knows;
+  EVT 3.0 ``.raw`` by default), written chunk by chunk;
 - ``poses.tum``: ground-truth T_world_cam (marker frame) at ``pose_hz``;
 - ``frames.npz``: every display refresh in the recording: ``refresh`` index, ``time_us`` (start
   of its scan-out at the top screen row), ``is_data`` and, for data refreshes, ``data_refresh``
@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from receiver.io import write_events
-from receiver.poses import write_tum
-from receiver.sim.engine import Recording
+from eventocc.receiver.io import write_events
+from eventocc.receiver.poses import write_tum
+from eventocc.receiver.sim.engine import Recording
 
 
 def write_recording(

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from receiver.sim.display import DisplayTimeline, ScreenLayout
-from receiver.sim.sensor import (
+from eventocc.receiver.sim.display import DisplayTimeline, ScreenLayout
+from eventocc.receiver.sim.sensor import (
     LAST,
     LEVEL,
     REF,

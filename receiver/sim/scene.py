@@ -8,13 +8,13 @@ from functools import cached_property
 
 import numpy as np
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.sim.display import LUX_TO_NITS_PER_REFLECTANCE, Display, ScreenLayout
-from receiver.sim.motion import Motion, Rig, StaticMotion, motion_from_dict
-from receiver.sim.optics import Optics
-from receiver.sim.render import Radiometry
-from receiver.sim.sensor import SensorModel
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.sim.display import LUX_TO_NITS_PER_REFLECTANCE, Display, ScreenLayout
+from eventocc.receiver.sim.motion import Motion, Rig, StaticMotion, motion_from_dict
+from eventocc.receiver.sim.optics import Optics
+from eventocc.receiver.sim.render import Radiometry
+from eventocc.receiver.sim.sensor import SensorModel
 
 
 @dataclass(frozen=True, eq=False)

@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass, replace
 import numba
 import numpy as np
 
-from receiver.events import EVENT_DTYPE
+from eventocc.receiver.events import EVENT_DTYPE
 
 SHOT_NOISE_BRIGHT_FACTOR = 0.25
 """v2e: shot-noise rate at full intensity relative to the dark rate."""

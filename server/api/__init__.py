@@ -2,7 +2,7 @@
 
 from fastapi import APIRouter
 
-from server.api import frames, messages, profiles, transmitter
+from eventocc.server.api import frames, messages, profiles, transmitter
 
 api_router = APIRouter(prefix="/api")
 for module in (messages, frames, profiles, transmitter):

@@ -8,10 +8,10 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Path, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from occ.marker import MAX_CELLS, MIN_CELLS
-from server.api.encoding import EncoderCache
-from server.settings import Settings
-from server.store import MessageStore, StoredMessage
+from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
+from eventocc.server.api.encoding import EncoderCache
+from eventocc.server.settings import Settings
+from eventocc.server.store import MessageStore, StoredMessage
 
 MESSAGE_ID_PATTERN = r"^[0-9a-f]{12}$"
 

@@ -10,9 +10,9 @@ from functools import lru_cache
 
 from fastapi import HTTPException, status
 
-from occ.stream import StreamEncoder
-from server.api.schemas import NOMINAL_REFRESH_HZ, MessagePublic
-from server.store import MessageStore, StoredMessage
+from eventocc.occ.stream import StreamEncoder
+from eventocc.server.api.schemas import NOMINAL_REFRESH_HZ, MessagePublic
+from eventocc.server.store import MessageStore, StoredMessage
 
 
 def new_encoder(data: bytes, *, name: str, profile: str, cells: int) -> StreamEncoder:

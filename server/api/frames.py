@@ -7,8 +7,8 @@ from typing import Annotated
 import numpy as np
 from fastapi import APIRouter, Query, Response
 
-from server.api.deps import CellsQuery, EncodersDep, MessageDep
-from server.api.schemas import ProfileName
+from eventocc.server.api.deps import CellsQuery, EncodersDep, MessageDep
+from eventocc.server.api.schemas import ProfileName
 
 router = APIRouter(prefix="/messages", tags=["frames"])
 

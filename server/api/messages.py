@@ -14,17 +14,17 @@ from urllib.parse import quote
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import (
+from eventocc.server.api.deps import (
     CellsQuery,
     MessageDep,
     SettingsDep,
     StoreDep,
     require_write_token,
 )
-from server.api.encoding import describe, link_facts, new_encoder
-from server.api.schemas import MessagePublic, MessagesPublic, MessageText, ProfileName
-from server.api.uploads import UPLOAD_MEDIA_TYPES, read_upload
-from server.store import StoredMessage
+from eventocc.server.api.encoding import describe, link_facts, new_encoder
+from eventocc.server.api.schemas import MessagePublic, MessagesPublic, MessageText, ProfileName
+from eventocc.server.api.uploads import UPLOAD_MEDIA_TYPES, read_upload
+from eventocc.server.store import StoredMessage
 
 router = APIRouter(prefix="/messages", tags=["messages"])
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from occ.marker import MAX_CELLS, MIN_CELLS
-from occ.profiles import PROFILE_NAMES
-from server.api.deps import SettingsDep
-from server.api.schemas import ProfilesPublic
+from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
+from eventocc.occ.profiles import PROFILE_NAMES
+from eventocc.server.api.deps import SettingsDep
+from eventocc.server.api.schemas import ProfilesPublic
 
 router = APIRouter(prefix="/profiles", tags=["profiles"])
 

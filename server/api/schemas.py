@@ -7,7 +7,7 @@ from enum import StrEnum
 
 from pydantic import BaseModel, Field
 
-from occ.profiles import PROFILE_NAMES
+from eventocc.occ.profiles import PROFILE_NAMES
 
 NOMINAL_REFRESH_HZ = 60.0
 

@@ -9,7 +9,7 @@ from datetime import UTC, datetime
 
 from fastapi import APIRouter, HTTPException, Request, status
 
-from server.api.schemas import TransmitterStatus, TransmitterStatusPublic
+from eventocc.server.api.schemas import TransmitterStatus, TransmitterStatusPublic
 
 router = APIRouter(prefix="/transmitter", tags=["transmitter"])
 

@@ -17,7 +17,7 @@ from fastapi import HTTPException, Request, status
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
-from server.api.schemas import MessageText
+from eventocc.server.api.schemas import MessageText
 
 WRAPPER_SLACK = 64 * 1024
 UPLOAD_MEDIA_TYPES = ("application/octet-stream", "multipart/form-data", "application/json")

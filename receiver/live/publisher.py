@@ -23,13 +23,13 @@ from pydantic import BaseModel
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 
-from occ.report import Hello
-from receiver.spool import Spool
+from eventocc.occ.report import Hello
+from eventocc.receiver.live.spool import Spool
 
 log = logging.getLogger(__name__)
 
 CLOSE_CODES_FATAL = {4401: "the server refused our token", 4400: "the server refused our Hello"}
-"""Close codes after which reconnecting cannot help (see ``server.live``)."""
+"""Close codes after which reconnecting cannot help (see ``eventocc.server.live``)."""
 SEND_BATCH = 256
 
 

@@ -15,7 +15,8 @@ import urllib.request
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
-from receiver.sources import LinkSettings, SourceError
+from eventocc.occ.profiles import LinkSettings
+from eventocc.receiver.live.sources import SourceError
 
 log = logging.getLogger(__name__)
 

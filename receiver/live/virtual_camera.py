@@ -30,11 +30,12 @@ from typing import Protocol
 
 import numpy as np
 
-from occ.stream import StreamEncoder
-from receiver.camera import CameraModel
-from receiver.events import empty_events
-from receiver.screen import Showing, TransmitterClient
-from receiver.sources import MAX_LAG_S, BehindNote, LinkSettings, LiveClock, SourceError
+from eventocc.occ.profiles import LinkSettings
+from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.events import empty_events
+from eventocc.receiver.live.screen import Showing, TransmitterClient
+from eventocc.receiver.live.sources import MAX_LAG_S, BehindNote, LiveClock, SourceError
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ def default_camera() -> CameraModel:
 
 
 def virtual_sensor():
-    from receiver.sim import SensorModel
+    from eventocc.receiver.sim import SensorModel
 
     # Coarser contrast steps and a refractory period than the ideal sensor: ~5x fewer events
     # per refresh, still a few per cell edge, which is all the receiver needs.
@@ -89,7 +90,7 @@ class SimulatorInThread:
         self.chunk_us = chunk_us
 
     def watch(self, scene) -> Iterator[np.ndarray]:
-        from receiver.sim import simulate
+        from eventocc.receiver.sim import simulate
 
         return iter(simulate(scene, duration_s=24 * 3600, chunk_us=self.chunk_us))
 
@@ -174,7 +175,7 @@ class SimulatorProcess:
 
 def _simulate_scenes(scenes, chunks, chunk_us: int) -> None:
     """The simulator process: simulate each scene sent until the next one comes."""
-    from receiver.sim import Scene, simulate
+    from eventocc.receiver.sim import Scene, simulate
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the daemon, which stops us
     try:
@@ -252,7 +253,7 @@ class VirtualCamera:
     # --- simulating ---
 
     def scene(self, encoder: StreamEncoder, showing: Showing):
-        from receiver.sim import Display, HandHeldMotion, Scene, StaticMotion
+        from eventocc.receiver.sim import Display, HandHeldMotion, Scene, StaticMotion
 
         motion = (
             # The hand carries on where it was, across skips ahead and new messages alike.

@@ -1,15 +1,9 @@
 """Where the daemon's events come from, behind one small interface.
 
-A source has a sensor size and yields event chunks in time order. It is named by a URI:
-
-- ``sim:`` the virtual event camera, watching what the server's transmitter plays right now;
-- ``file:PATH`` (or just ``PATH``) a recording, replayed at real-time pace or as fast as possible;
-- ``nd:`` / ``metavision:[SERIAL]`` / ``dv:`` a live camera through an optional backend
-  (neuromorphic-drivers, Metavision's Python API, dv-processing).
-
-A live source (a camera, a recording at real-time pace, the virtual camera) never lets its
-consumer fall more than ``MAX_LAG_S`` behind: it skips ahead to what it delivers now, and
-reports its ``speed``, the seconds of events it delivered per second of the source.
+A source has a sensor size and yields event chunks in time order (``eventocc.receiver.live.uri``
+opens one by name). A live source (a camera, a recording at real-time pace, the virtual camera)
+never lets its consumer fall more than ``MAX_LAG_S`` behind: it skips ahead to what it delivers
+now, and reports its ``speed``, the seconds of events it delivered per second of the source.
 """
 
 from __future__ import annotations
@@ -27,12 +21,10 @@ __all__ = [
     "MAX_LAG_S",
     "BehindNote",
     "EventSource",
-    "LinkSettings",
     "LiveClock",
     "RecordingSource",
     "SourceError",
     "StayLive",
-    "open_source",
     "paced",
 ]
 
@@ -60,23 +52,9 @@ class EventSource(Protocol):
     height: int
 
     def chunks(self) -> Iterator[np.ndarray]:
-        """Event chunks (``receiver.events.EVENT_DTYPE``) in time order, until the source ends."""
+        """Event chunks (``eventocc.receiver.events.EVENT_DTYPE``) in time order, until the source
+        ends."""
         ...
-
-
-@dataclass(frozen=True)
-class LinkSettings:
-    """What the receiver pipeline must be told about the screen: its link profile, cells and
-    refresh rate."""
-
-    profile: str
-    cells: int
-    refresh_hz: float = 60.0
-    """Whole hertz: a page's measured rate wobbles by a fraction of a hertz, which the receiver
-    absorbs (it re-times every frame from its own burst) and must not rebuild for."""
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "refresh_hz", float(round(self.refresh_hz)))
 
 
 class LiveClock:
@@ -246,13 +224,15 @@ class StayLive:
 
 @dataclass
 class RecordingSource:
-    """An event file in any format ``receiver.io`` reads."""
+    """An event file in any format ``eventocc.receiver.io`` reads."""
 
     path: Path
     realtime: bool = True
 
     def __post_init__(self) -> None:
-        from receiver.io import read_events  # the readers pull in numba kernels: only when used
+        from eventocc.receiver.io import (
+            read_events,  # the readers pull in numba kernels: only when used
+        )
 
         if not self.path.is_file():
             raise SourceError(f"no recording at {self.path}: give an event file's path")
@@ -268,24 +248,3 @@ class RecordingSource:
 
     def chunks(self) -> Iterator[np.ndarray]:
         return self._live(paced(self._stream)) if self.realtime else iter(self._stream)
-
-
-def open_source(uri: str, *, realtime: bool = True, **virtual_camera_options) -> EventSource:
-    """The source a URI names (see the module docstring); raises ``SourceError`` if it can't."""
-    scheme, sep, rest = uri.partition(":")
-    if not sep or len(scheme) == 1:  # a plain path (or a Windows drive letter)
-        scheme, rest = "file", uri
-    if scheme == "file":
-        return RecordingSource(Path(rest), realtime=realtime)
-    if scheme == "sim":
-        from receiver.virtual_camera import VirtualCamera
-
-        return VirtualCamera(**virtual_camera_options)
-    from receiver.live_cameras import LIVE_BACKENDS, open_live_camera
-
-    if scheme in LIVE_BACKENDS:
-        return open_live_camera(scheme, rest)
-    raise SourceError(
-        f"unknown source {uri!r}: use sim:, file:PATH, or a live camera "
-        f"({', '.join(f'{name}:' for name in LIVE_BACKENDS)})"
-    )

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from receiver.events import make_events
-from receiver.sources import SourceError, StayLive
+from eventocc.receiver.events import make_events
+from eventocc.receiver.live.sources import SourceError, StayLive
 
 CHUNK_US = 10_000
 

@@ -32,7 +32,8 @@ import numba
 import numpy as np
 from pydantic import BaseModel
 
-from occ.report import (
+from eventocc.occ.profiles import LinkSettings
+from eventocc.occ.report import (
     FrameStats,
     HealthReport,
     MessageReport,
@@ -41,9 +42,15 @@ from occ.report import (
     SurfaceReport,
     TrackingState,
 )
-from receiver.pipeline.receiver import FrameOutput, MessageOutput, Output, PoseEstimate, StateChange
-from receiver.poses import TUM_HEADER, format_seconds, pose_to_tum_row, tum_lines
-from receiver.sources import EventSource, LinkSettings
+from eventocc.receiver.live.sources import EventSource
+from eventocc.receiver.pipeline.receiver import (
+    FrameOutput,
+    MessageOutput,
+    Output,
+    PoseEstimate,
+    StateChange,
+)
+from eventocc.receiver.poses import TUM_HEADER, format_seconds, pose_to_tum_row, tum_lines
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +65,7 @@ class Progress(Protocol):
 
 
 class Pipeline(Protocol):
-    """What the daemon needs of ``receiver.pipeline.receiver.Receiver`` (tests may pass a
+    """What the daemon needs of ``eventocc.receiver.pipeline.receiver.Receiver`` (tests may pass a
     stand-in): ``push`` events, and the stream decoder's progress per message in flight."""
 
     stream: Progress
@@ -67,7 +74,7 @@ class Pipeline(Protocol):
 
 
 class Sink(Protocol):
-    """Where reports go: ``receiver.publisher.Publisher`` (or a list in tests)."""
+    """Where reports go: ``eventocc.receiver.live.publisher.Publisher`` (or a list in tests)."""
 
     def publish(self, report: BaseModel, *, durable: bool) -> None: ...
 

@@ -1,0 +1,34 @@
+"""Sources named by URI:
+
+- ``sim:`` the virtual event camera, watching what the server's transmitter plays right now;
+- ``file:PATH`` (or just ``PATH``) a recording, replayed at real-time pace or as fast as possible;
+- ``nd:`` / ``metavision:[SERIAL]`` / ``dv:`` a live camera through an optional backend
+  (neuromorphic-drivers, Metavision's Python API, dv-processing).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from eventocc.receiver.live.sources import EventSource, RecordingSource, SourceError
+
+
+def open_source(uri: str, *, realtime: bool = True, **virtual_camera_options) -> EventSource:
+    """The source a URI names (see the module docstring); raises ``SourceError`` if it can't."""
+    scheme, sep, rest = uri.partition(":")
+    if not sep or len(scheme) == 1:  # a plain path (or a Windows drive letter)
+        scheme, rest = "file", uri
+    if scheme == "file":
+        return RecordingSource(Path(rest), realtime=realtime)
+    if scheme == "sim":
+        from eventocc.receiver.live.virtual_camera import VirtualCamera
+
+        return VirtualCamera(**virtual_camera_options)
+    from eventocc.receiver.live.cameras import LIVE_BACKENDS, open_live_camera
+
+    if scheme in LIVE_BACKENDS:
+        return open_live_camera(scheme, rest)
+    raise SourceError(
+        f"unknown source {uri!r}: use sim:, file:PATH, or a live camera "
+        f"({', '.join(f'{name}:' for name in LIVE_BACKENDS)})"
+    )

@@ -1,0 +1,1 @@
+"""Static pages the server serves (transmitter, dashboard): package data, no Python."""
