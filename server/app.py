@@ -1,19 +1,23 @@
-"""The FastAPI app factory: REST API, optional live routes, and the static pages of ``web/``."""
+"""The FastAPI app factory: the API, one lifespan for the live state, and the static pages."""
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from html import escape
 from importlib import resources
 from pathlib import Path
 
-from fastapi import APIRouter, FastAPI
+from fastapi import FastAPI
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
+from eventocc import __version__
 from eventocc.server.api import api_router
 from eventocc.server.api.encoding import EncoderCache
+from eventocc.server.api.state import LiveState
+from eventocc.server.hub import Hub
+from eventocc.server.receptions import ReceptionStore
 from eventocc.server.settings import Settings
 from eventocc.server.store import MessageStore
 
@@ -25,21 +29,16 @@ UVICORN_OPTIONS = {"ws_per_message_deflate": False}
 JSON, and compressing each one for each viewer (one zlib stream per connection) took a third
 more server CPU with 100 dashboards (bench/live.py) to save little bandwidth."""
 
-OPTIONAL_ROUTER_MODULES = ("eventocc.server.live",)
-"""Modules exposing ``router``, included when they exist (websockets, health, metrics)."""
 
-
-def optional_routers() -> list[APIRouter]:
-    routers = []
-    for name in OPTIONAL_ROUTER_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as error:
-            if error.name != name:  # the module exists but one of its imports is missing
-                raise
-            continue
-        routers.append(module.router)
-    return routers
+@asynccontextmanager
+async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+    """The live state for the app's lifetime; the receptions' database closes with it."""
+    store = app.state.store
+    app.state.live = LiveState(Hub(), ReceptionStore(store.path), store)
+    try:
+        yield
+    finally:
+        app.state.live.receptions.close()
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -47,15 +46,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(
         title="eventocc",
         summary="Screen-to-event-camera link: upload messages, play them as a dynamic marker.",
-        version="0.1.0",
+        version=__version__,
+        lifespan=lifespan,
     )
     app.state.settings = settings
     app.state.store = MessageStore(settings.db_path)
     app.state.encoders = EncoderCache(app.state.store, settings.encoder_cache_size)
-    app.state.transmitter_status = None
-
-    for router in (api_router, *optional_routers()):
-        app.include_router(router)
+    app.include_router(api_router)
     _add_pages(app, WEB_DIR)
     return app
 

@@ -8,16 +8,14 @@ import re
 import signal
 import subprocess
 import sys
-import types
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from fastapi import APIRouter
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 
-from eventocc.server import app as server_app
 from eventocc.server import demo
 from eventocc.server.__main__ import parse_args, settings_from_args
 from eventocc.server.app import create_app
@@ -25,8 +23,9 @@ from eventocc.server.settings import MIB, Settings
 
 
 @pytest.fixture
-def client(tmp_path: Path) -> TestClient:
-    return TestClient(create_app(Settings(data_dir=tmp_path)))
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    with TestClient(create_app(Settings(data_dir=tmp_path))) as client:
+        yield client
 
 
 # --- pages -------------------------------------------------------------------------------------
@@ -71,7 +70,7 @@ def test_transmitter_status_round_trip(client: TestClient) -> None:
     latest = client.get("/api/transmitter/status").json()
     assert {k: latest[k] for k in report} == report
     assert latest["received"] == posted.json()["received"]
-    assert client.app.state.transmitter_status.frame_index == 120
+    assert client.app.state.live.transmitter.frame_index == 120
 
 
 @pytest.mark.parametrize(
@@ -114,29 +113,6 @@ def test_settings_come_from_the_environment(
 def test_bad_settings_are_refused(options: dict, reason: str) -> None:
     with pytest.raises(ValidationError, match=reason):
         Settings(**options)
-
-
-# --- optional routers --------------------------------------------------------------------------
-def test_optional_router_is_included_when_its_module_exists(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
-    module = types.ModuleType("eventocc_test_live")
-    module.router = APIRouter()
-    module.router.add_api_route("/healthz-test", lambda: {"ok": True})
-    monkeypatch.setitem(sys.modules, module.__name__, module)
-    monkeypatch.setattr(
-        server_app, "OPTIONAL_ROUTER_MODULES", ("eventocc_test_absent", module.__name__)
-    )
-    client = TestClient(create_app(Settings(data_dir=tmp_path)))
-    assert client.get("/healthz-test").json() == {"ok": True}
-
-
-def test_optional_router_with_a_broken_import_fails_loudly(monkeypatch: pytest.MonkeyPatch) -> None:
-    module = types.ModuleType("eventocc_test_broken")
-    monkeypatch.setitem(sys.modules, module.__name__, module)  # imports, but has no router
-    monkeypatch.setattr(server_app, "OPTIONAL_ROUTER_MODULES", (module.__name__,))
-    with pytest.raises(AttributeError):
-        server_app.optional_routers()
 
 
 # --- console script and demo -------------------------------------------------------------------

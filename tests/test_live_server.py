@@ -232,6 +232,27 @@ def test_transmitter_socket_and_rest_status_are_one_state(serve_app) -> None:
     assert rest["frame_index"] == 42 and rest["received"] == update["received"]
 
 
+def test_a_status_posted_over_rest_reaches_the_dashboards(serve_app) -> None:
+    base_url, _ = serve_app()
+    status = {"message_id": "0123456789ab", "profile": "fast", "cells": 12, "frame_index": 7}
+
+    async def scenario() -> dict:
+        async with connect(ws_url(base_url, "/ws/dashboard")) as dash:
+            request = urllib.request.Request(
+                f"{base_url}/api/transmitter/status",
+                data=json.dumps(status).encode(),
+                headers={"Content-Type": "application/json"},
+            )
+            await asyncio.to_thread(urllib.request.urlopen, request)
+            while True:
+                update = json.loads(await asyncio.wait_for(dash.recv(), 5))
+                if update["type"] == "transmitter":
+                    return update
+
+    update = asyncio.run(scenario())
+    assert (update["profile"], update["cells"], update["frame_index"]) == ("fast", 12, 7)
+
+
 def test_a_stalled_dashboard_does_not_slow_the_others(serve_app) -> None:
     base_url, app = serve_app(token=TOKEN)
     hub = app.state.live.hub

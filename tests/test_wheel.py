@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import socket
 import subprocess
 import sys
@@ -16,16 +17,24 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
+PACKAGE_FOLDERS = ("eventocc", "occ", "server", "receiver", "web")
 
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("wheel")
+    """Built from a copy of the checkout's sources: an in-tree build would reuse a stale
+    ``build/`` left by an earlier one."""
+    source, out = tmp_path_factory.mktemp("source"), tmp_path_factory.mktemp("wheel")
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, source)
+    for folder in PACKAGE_FOLDERS:
+        shutil.copytree(
+            ROOT / folder, source / folder, ignore=shutil.ignore_patterns("__pycache__")
+        )
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q",
-         "-w", str(out), str(ROOT)],
-        check=True, cwd=out,
-    )  # fmt: skip
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(out), str(source)],
+        check=True,
+    )
     (built,) = out.glob("eventocc-*.whl")
     return built
 
@@ -38,7 +47,7 @@ def test_the_wheel_holds_only_the_package(wheel):
         assert f"eventocc/web/{page}" in names
     sources = {
         f"eventocc/{path.relative_to(ROOT).as_posix()}"
-        for folder in ("occ", "server", "receiver", "web")
+        for folder in PACKAGE_FOLDERS[1:]
         for path in (ROOT / folder).rglob("*.py")
     }
     assert sources <= set(names), "modules missing from the wheel (pyproject's packages list)"

@@ -29,7 +29,7 @@ from eventocc.receiver.live.spool import Spool
 log = logging.getLogger(__name__)
 
 CLOSE_CODES_FATAL = {4401: "the server refused our token", 4400: "the server refused our Hello"}
-"""Close codes after which reconnecting cannot help (see ``eventocc.server.live``)."""
+"""Close codes after which reconnecting cannot help (see ``eventocc.server.api.receivers``)."""
 SEND_BATCH = 256
 
 

@@ -1,9 +1,27 @@
-"""The REST API, mounted under ``/api``: one router per resource."""
+"""The HTTP and websocket API, one module per resource: REST under ``/api``, websockets under
+``/ws``, health and metrics at the root."""
 
 from fastapi import APIRouter
 
-from eventocc.server.api import frames, messages, profiles, transmitter
+from eventocc.server.api import (
+    dashboards,
+    frames,
+    health,
+    messages,
+    profiles,
+    receivers,
+    receptions,
+    transmitter,
+)
 
-api_router = APIRouter(prefix="/api")
-for module in (messages, frames, profiles, transmitter):
-    api_router.include_router(module.router)
+rest = APIRouter(prefix="/api")
+for module in (messages, frames, profiles, transmitter, receptions, receivers):
+    rest.include_router(module.router)
+
+sockets = APIRouter(prefix="/ws")
+for module in (receivers, dashboards, transmitter):
+    sockets.include_router(module.sockets)
+
+api_router = APIRouter()
+for part in (rest, sockets, health.router):
+    api_router.include_router(part)

@@ -7,9 +7,11 @@ from typing import Annotated
 
 from fastapi import Depends, HTTPException, Path, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.requests import HTTPConnection
 
 from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
 from eventocc.server.api.encoding import EncoderCache
+from eventocc.server.api.state import LiveState
 from eventocc.server.settings import Settings
 from eventocc.server.store import MessageStore, StoredMessage
 
@@ -28,9 +30,15 @@ def get_encoders(request: Request) -> EncoderCache:
     return request.app.state.encoders
 
 
+def get_live(connection: HTTPConnection) -> LiveState:
+    """Also for websockets, hence the connection rather than a request."""
+    return connection.app.state.live
+
+
 StoreDep = Annotated[MessageStore, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 EncodersDep = Annotated[EncoderCache, Depends(get_encoders)]
+LiveDep = Annotated[LiveState, Depends(get_live)]
 
 
 def get_message(

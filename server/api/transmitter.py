@@ -1,31 +1,54 @@
-"""``/api/transmitter/status``: the latest playback report of a transmitter page.
+"""A transmitter page's playback status: ``POST /api/transmitter/status`` or ``/ws/transmitter``,
+read back at ``GET /api/transmitter/status``.
 
-Kept in memory on the app (``app.state.transmitter_status``), not stored: it is only news.
+Both ways in take the same path (``LiveState.set_transmitter``): the latest status is kept in
+memory, not stored (it is only news), and passed on to the dashboards at once.
 """
 
 from __future__ import annotations
 
 from datetime import UTC, datetime
 
-from fastapi import APIRouter, HTTPException, Request, status
+from fastapi import APIRouter, HTTPException, status
+from fastapi.websockets import WebSocket, WebSocketDisconnect
+from pydantic import ValidationError
 
+from eventocc.server.api.deps import LiveDep
 from eventocc.server.api.schemas import TransmitterStatus, TransmitterStatusPublic
 
 router = APIRouter(prefix="/transmitter", tags=["transmitter"])
+sockets = APIRouter(tags=["transmitter"])
+
+
+def stamped(report: TransmitterStatus) -> TransmitterStatusPublic:
+    return TransmitterStatusPublic(**report.model_dump(), received=datetime.now(UTC))
 
 
 @router.post("/status")
-def update_transmitter_status(
-    report: TransmitterStatus, request: Request
-) -> TransmitterStatusPublic:
-    latest = TransmitterStatusPublic(**report.model_dump(), received=datetime.now(UTC))
-    request.app.state.transmitter_status = latest
+def update_transmitter_status(report: TransmitterStatus, live: LiveDep) -> TransmitterStatusPublic:
+    latest = stamped(report)
+    live.set_transmitter(latest)
     return latest
 
 
 @router.get("/status", responses={404: {"description": "No transmitter has reported yet."}})
-def read_transmitter_status(request: Request) -> TransmitterStatusPublic:
-    latest = request.app.state.transmitter_status
-    if latest is None:
+def read_transmitter_status(live: LiveDep) -> TransmitterStatusPublic:
+    if live.transmitter is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, "no transmitter has reported yet")
-    return latest
+    return live.transmitter
+
+
+@sockets.websocket("/transmitter")
+async def transmitter_socket(websocket: WebSocket, live: LiveDep) -> None:
+    await websocket.accept()
+    try:
+        while True:
+            text = await websocket.receive_text()
+            try:
+                report = TransmitterStatus.model_validate_json(text)
+            except ValidationError as error:
+                await websocket.send_json({"type": "error", "detail": error.errors()[:3]})
+                continue
+            live.set_transmitter(stamped(report))
+    except WebSocketDisconnect:
+        pass
