@@ -214,14 +214,13 @@ def test_tracking_is_lost_when_the_fit_ratio_stays_low_not_at_one_dip():
     motion (few edge events, the blinking locator beside the ring); a slipped pose stays low."""
     config = replace(CONFIG, tracker=replace(CONFIG.tracker, min_fit_ratio=0.5, fit_judgements=3))
     truth = invert(_view())
-    rx = Receiver(config)
-    rx._tracker = tracker = EdgeTracker(config, truth.copy())
+    tracker = EdgeTracker(config, truth.copy())
     ring_px = tracker._layout(*tracker._project_edges(truth))[0].min()
 
     def judge(t0_us: int, on_edges: bool) -> str | None:
         offset = 0.0 if on_edges else 0.5 * ring_px  # beyond the gates of both ring sides
         tracker.push(*_edge_events(truth, t0_us, n_per_edge=100, offset_px=offset, seed=t0_us))
-        return rx._off_edges()
+        return tracker.off_edges()
 
     one_dip = [judge(2000 * k, on) for k, on in enumerate([True, True, False, True, True])]
     assert one_dip == [None] * 5

@@ -13,9 +13,9 @@ motion the frames after the detected burst's, waited for if need be: ``Receiver.
 tracking, a lock is dropped when the tracker leaves the ring's edges or an outer edge stays silent
 while the motion sweeps it (``EdgeTracker.contradicted``), the marker leaves the view,
 the inner locator goes unseen for several frames, or its 'L' reads upright barely better than
-turned (``Receiver._misturned``): a pose a quarter turn off passes every other check. A lock
+turned (``Track.misturned``): a pose a quarter turn off passes every other check. A lock
 from a detection under motion is on probation until one of its frames passes its check
-(``Receiver._failed_probation``), since some wrong poses read the 'L' well.
+(``Track.failed_probation``), since some wrong poses read the 'L' well.
 
 Only one stage touches every event while the marker is tracked: the compiled triage
 (``triage.EventTriage``), which keeps each pixel's latest burst times for the decoder and hands
@@ -32,7 +32,6 @@ waits for the next chunk; ``finish`` processes it at the end of a recording.
 from __future__ import annotations
 
 import logging
-import statistics
 import time
 from collections import defaultdict, deque
 from contextlib import contextmanager
@@ -106,6 +105,45 @@ class ReceiverStats:
     cpu_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
 
 
+@dataclass
+class Track:
+    """What one lock holds: made at the lock (``Receiver._lock``), dropped at its end."""
+
+    tracker: EdgeTracker
+    reader: CellReader
+    next_frame: int
+    """The next frame to read; negative for the frames still buffered from before a still lock."""
+    burst_frame_read_only: bool
+    """Frame 0 of a lock under motion (the detected burst's) only times the frame clock."""
+    late_mark: bool
+    """Whether frames keep each pixel's first burst after their window's middle too
+    (``DecoderParams.late_mark_px_per_cell``)."""
+    probation: int | None
+    """Frames left for a lock on probation to pass a frame check (``failed_probation``)."""
+    turn_leads: deque[float]
+    """The latest read frames' leads of the locator's canonical turn (``misturned``)."""
+    missed: int = 0
+    """Frames in a row without the inner locator."""
+
+    def failed_probation(self, frame: FrameOutput) -> bool:
+        """Whether a lock on probation (``DecoderParams.probation_frames``) has now read its
+        last allowed frame without one passing its check; a frame that passes ends it."""
+        if self.probation is None:
+            return False
+        self.probation = None if frame.payload_bits else self.probation - 1
+        return self.probation == 0
+
+    def misturned(self, read: FrameRead, min_turn_lead: float) -> bool:
+        """Record ``read``; whether the last ``turn_frames`` frames read the locator's 'L'
+        upright barely better (``min_turn_lead``) than turned by a quarter or a half. Such a pose
+        passes the locator score (the medians of the white and black cells) and the fit ratio
+        (the ring is square: a turned pose lies on its edges) but reads garbage; under fast
+        motion detection makes such fits."""
+        self.turn_leads.append(float(read.turns[0] - read.turns[1:].max()))
+        leads = self.turn_leads
+        return len(leads) == leads.maxlen and np.median(leads) < min_turn_lead
+
+
 class Receiver:
     def __init__(self, config: ReceiverConfig, message_size: int | None = None) -> None:
         self.config = config
@@ -129,21 +167,10 @@ class Receiver:
         self._next_attempt_us: int | None = None
         self._pending: Detection | None = None
         """A detection under motion waiting for the frame after its burst's (``_postpone``)."""
-        self._tracker: EdgeTracker | None = None
-        self._reader: CellReader | None = None
-        self._next_frame = 0
-        self._missed = 0
-        self._burst_frame_read_only = False
-        """Frame 0 of a lock under motion (the detected burst's) only times the frame clock."""
-        self._late_mark = False
-        """Whether frames keep each pixel's first burst after their window's middle too
-        (``DecoderParams.late_mark_px_per_cell``)."""
-        self._probation: int | None = None
-        """Frames left for a lock on probation to pass a frame check (``_failed_probation``)."""
+        self._track: Track | None = None
+        """The lock being tracked (``state`` is ``TRACKING``)."""
         self._verified: tuple[int, np.ndarray] | None = None
         """(time, T_cam_world) of the latest frame that passed its check (``turn_memory_us``)."""
-        self._turn_leads: deque[float] = deque(maxlen=config.decoder.turn_frames)
-        """The latest read frames' leads of the locator's canonical turn (``_misturned``)."""
         self._gaps: deque[tuple[int, int]] = deque(maxlen=8)
         """Recent stretches longer than a data frame without a single event: the source dropped
         them (a camera's lost packets, the virtual camera skipping ahead)."""
@@ -249,39 +276,41 @@ class Receiver:
         this raises ``MarkerNotFound`` (a failed detection, not a loss), unless under motion the
         frame after the burst's is still to come (``_postpone``)."""
         T, t_lock = found.T_cam_world, found.t_us
-        self._tracker = EdgeTracker(self.config, T, t_lock, found.flow_px_per_ms)
+        tracker = EdgeTracker(self.config, T, t_lock, found.flow_px_per_ms)
         if not found.moving:
             with self._cpu("lock"):  # a still detection may lag a slow drift: snap to the ring
                 recent = self._buffer.between(now - self.config.tracker.capture_us, now)
                 recent = to_columns(recent, self.config.camera.undistort_table)
-                if self._tracker.capture(recent["xu"], recent["yu"], now):
-                    T = self._tracker.T_cam_world
+                if tracker.capture(recent["xu"], recent["yu"], now):
+                    T = tracker.T_cam_world
         side = cell_side_px(self.config, T)
         stride = read_stride(self.config, side)
-        late = self.config.decoder.late_mark_px_per_cell
-        self._late_mark = late is not None and side >= late
-        self._reader = CellReader(self.config, found.burst_us, stride)
-        self._triage.reset(now, stride)
+        late, q = self.config.decoder.late_mark_px_per_cell, self.config.decoder
+        framed = get_profile(self.config.profile).framed
         # Frames inside the detection window are still buffered: read them too. Under motion the
         # pose holds at the compensated burst (frame 0) and is tracked from there to now.
         window = self.config.detector.window_us
-        self._next_frame = 0 if found.moving else -int(window // self.config.frame_us) + 1
-        self._missed = 0
-        framed = get_profile(self.config.profile).framed
-        self._probation = self.config.decoder.probation_frames if found.moving and framed else None
-        self._turn_leads.clear()
-        self._burst_frame_read_only = found.moving
+        self._track = track = Track(
+            tracker,
+            CellReader(self.config, found.burst_us, stride),
+            next_frame=0 if found.moving else -int(window // self.config.frame_us) + 1,
+            burst_frame_read_only=found.moving,
+            late_mark=late is not None and side >= late,
+            probation=q.probation_frames if found.moving and framed else None,
+            turn_leads=deque(maxlen=q.turn_frames),
+        )
+        self._triage.reset(now, stride)
         self._poses.restart(t_lock, T)
         self.state = TRACKING
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
         out += self._pose_output(t_lock, T)
         track_from = t_lock if found.moving else now
         self._cursor = min(
-            self._reader.window(self._next_frame)[0] - self._triage.gap_us, track_from
+            track.reader.window(track.next_frame)[0] - self._triage.gap_us, track_from
         )
         losses = self.stats.losses  # a lock lost on its own buffered events never stood
         counts = self.stats.frames_read, self.stats.pose_updates
-        out += self._follow(track_from, track=False, final=True)
+        out += self._follow(track_from, tracking=False, final=True)
         out += self._follow(now, final=True)
         frames = [o for o in out if isinstance(o, FrameOutput)]
         if self.state != TRACKING:
@@ -289,7 +318,7 @@ class Receiver:
             reason = out[-1].reason
             raise MarkerNotFound(f"verify: tracking failed on the buffered events ({reason})")
         reason = self._unverified(found, frames)
-        if reason and found.moving and (whole := self._reader.window(1)[1]) > now:
+        if reason and found.moving and (whole := track.reader.window(1)[1]) > now:
             self.stats.frames_read, self.stats.pose_updates = counts
             return self._postpone(found, whole)
         if reason:
@@ -335,12 +364,12 @@ class Receiver:
         need = q.min_lock_locator_score if found.moving else self.config.decoder.min_locator_score
         if best is not None and best < need:
             return f"verify: the inner locator reads at {best:.2f} at the detected pose"
-        fit = self._tracker.fit_ratio
+        fit = self._track.tracker.fit_ratio
         if found.moving and fit is not None and fit < q.min_lock_fit_ratio:
             return f"verify: only {fit:.0%} of the events near the ring lie on its edges"
         return None
 
-    def _follow(self, until: int, track: bool = True, final: bool = False) -> list[Output]:
+    def _follow(self, until: int, tracking: bool = True, final: bool = False) -> list[Output]:
         """Triage (and track) the events from the cursor on, in pieces that end where the next
         frame's time span ends (its pixels' bursts are then complete, and it is read before the
         next ones come in) or at the next line of a ``_SEGMENT_US`` grid, whichever is first.
@@ -349,7 +378,8 @@ class Receiver:
         out: list[Output] = []
         per_ms = self.config.tracker.max_events_per_ms
         while self.state == TRACKING:
-            start, frame_end = self._reader.window(self._next_frame)
+            track = self._track
+            start, frame_end = track.reader.window(track.next_frame)
             if self._cursor >= frame_end:  # the frame's bursts are complete
                 out += self._decode(frame_end)
                 continue
@@ -362,20 +392,20 @@ class Receiver:
             self._cursor = end
             if not parts:
                 continue
-            self._triage.marks_us = (start, (start + frame_end) // 2 if self._late_mark else start)
+            self._triage.marks_us = (start, (start + frame_end) // 2 if track.late_mark else start)
             with self._cpu("triage"):
-                if track:
+                if tracking:
                     self._select_near_edges()
                 near = self._triage(*parts, per_ms=per_ms)
-            if track:
-                out += self._track(near)
+            if tracking:
+                out += self._track_events(near)
         return out
 
     def _select_near_edges(self) -> None:
         """Show the tracker only the events near its edges: twice its gate (so that a pose
         slipping off the edges still shows) plus the motion of one segment."""
         reach = 2 * self.config.tracker.gate_px + 4.0
-        self._triage.track_near(*self._tracker.edges_px, reach)
+        self._triage.track_near(*self._track.tracker.edges_px, reach)
 
     def _lose(self, now: int, reason: str) -> list[Output]:
         log.info("tracking lost at %d us: %s", now, reason)
@@ -386,15 +416,16 @@ class Receiver:
     def _end_track(self) -> list[PoseEstimate]:
         """Back to detecting; the track's smoothed poses still held."""
         self.state = DETECTING
-        self._tracker = self._reader = None
+        self._track = None
         return self._flush_poses()
 
-    def _track(self, events: np.ndarray) -> list[Output]:
+    def _track_events(self, events: np.ndarray) -> list[Output]:
         out: list[Output] = []
         if len(events):
+            tracker = self._track.tracker
             with self._cpu("track"):
                 try:
-                    updates = self._tracker.push(events["xu"], events["yu"], events["t"])
+                    updates = tracker.push(events["xu"], events["yu"], events["t"])
                 except ValueError as exc:  # the pose put the marker behind the camera
                     return out + self._lose(int(events["t"][-1]), str(exc))
             for u in updates:
@@ -403,8 +434,8 @@ class Receiver:
                 out += self._pose_output(u.t_us, u.T_cam_world)
             now = int(events["t"][-1])
             if now - self._last_pose_out >= self.config.pose_interval_us:
-                out += self._pose_output(now, self._tracker.T_cam_world)
-            reason = self._out_of_view(self._tracker.T_cam_world) or self._off_edges()
+                out += self._pose_output(now, tracker.T_cam_world)
+            reason = self._out_of_view(tracker.T_cam_world) or tracker.off_edges()
             if reason:
                 return out + self._lose(now, reason)
         self._trim_poses()
@@ -420,47 +451,36 @@ class Receiver:
             return "marker left the field of view"
         return None
 
-    def _off_edges(self) -> str | None:
-        if self._tracker.contradicted:
-            return "an outer edge of the ring shows no events while the marker sweeps it"
-        history = self._tracker.fit_history
-        if len(history) < history.maxlen:
-            return None
-        ratio = statistics.median(history)  # after every push: numpy's costs 40x more
-        if ratio < self.config.tracker.min_fit_ratio:
-            return f"only {ratio:.0%} of the events near the ring lie on its edges"
-        return None
-
     def _decode(self, now: int) -> list[Output]:
         out: list[Output] = []
-        reader = self._reader
-        q = self.config.decoder
-        while self.state == TRACKING and reader.window(self._next_frame)[1] <= now:
-            m = self._next_frame
-            self._next_frame += 1
+        track = self._track
+        reader, q = track.reader, self.config.decoder
+        while self.state == TRACKING and reader.window(track.next_frame)[1] <= now:
+            m = track.next_frame
+            track.next_frame += 1
             with self._cpu("decode"):
                 t0, t1 = reader.window(m)
                 box = reader.box(*self.pose_at(np.array([t0, (t0 + t1) / 2, t1])))
                 bursts = self._triage.bursts(t0, t1, box)
                 read = reader.read(m, bursts, self.pose_at)
             self.stats.frames_read += 1
-            if m == 0 and self._burst_frame_read_only:  # ``_postpone`` says why
+            if m == 0 and track.burst_frame_read_only:  # ``_postpone`` says why
                 out.append(FrameOutput(read, False))
                 continue
             seen = read.locator_score >= q.min_locator_score
             if not seen and any(a < t1 and t0 < b for a, b in self._gaps):
                 continue  # the source delivered nothing then: no evidence either way
-            if self._misturned(read):
+            if track.misturned(read, q.min_turn_lead):
                 out.append(FrameOutput(read, False))
                 out += self._lose(now, "the inner locator's 'L' does not read at the tracked pose")
                 continue
             if not seen:
                 out.append(FrameOutput(read, False))
-                self._missed += 1
-                if self._missed >= q.lost_after_frames:
+                track.missed += 1
+                if track.missed >= q.lost_after_frames:
                     out += self._lose(now, "inner locator not seen in the last frames")
                 continue
-            self._missed = 0
+            track.missed = 0
             self.stats.frames_seen += 1
             verified = self.stream.verified_bits
             with self._cpu("stream"):
@@ -470,27 +490,9 @@ class Receiver:
                 self._verified = (read.t_us, self.pose_at(np.array([read.t_us]))[0])
             out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]
-            if self._failed_probation(frame):
+            if track.failed_probation(frame):
                 out += self._lose(now, "no frame passed its check since the lock")
         return out
-
-    def _failed_probation(self, frame: FrameOutput) -> bool:
-        """Whether a lock on probation (``DecoderParams.probation_frames``) has now read its
-        last allowed frame without one passing its check; a frame that passes ends it."""
-        if self._probation is None:
-            return False
-        self._probation = None if frame.payload_bits else self._probation - 1
-        return self._probation == 0
-
-    def _misturned(self, read: FrameRead) -> bool:
-        """Record ``read``; whether the last ``turn_frames`` frames read the locator's 'L'
-        upright barely better (``min_turn_lead``) than turned by a quarter or a half. Such a pose
-        passes the locator score (the medians of the white and black cells) and the fit ratio
-        (the ring is square: a turned pose lies on its edges) but reads garbage; under fast
-        motion detection makes such fits."""
-        self._turn_leads.append(float(read.turns[0] - read.turns[1:].max()))
-        leads = self._turn_leads
-        return len(leads) == leads.maxlen and np.median(leads) < self.config.decoder.min_turn_lead
 
     # --- poses -------------------------------------------------------------------------------
     def pose_at(self, t_us: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@ shrinking gates (``EdgeTracker.capture``), since a detection under motion is a f
 
 from __future__ import annotations
 
+import statistics
 from collections import deque
 from dataclasses import dataclass
 
@@ -508,6 +509,21 @@ class EdgeTracker:
         edge (``silent_edges``)."""
         history = self.silent_history
         return len(history) == history.maxlen and all(history)
+
+    def off_edges(self) -> str | None:
+        """Why the tracked pose has left the ring, if it has: an outer edge silent while the
+        motion sweeps it (``contradicted``), or the last ``fit_judgements`` fit ratios' median
+        below ``min_fit_ratio``. One low judgement is how a right pose looks for a moment under
+        slow motion (few edge events, the blinking locator beside the ring)."""
+        if self.contradicted:
+            return "an outer edge of the ring shows no events while the marker sweeps it"
+        history = self.fit_history
+        if len(history) < history.maxlen:
+            return None
+        ratio = statistics.median(history)  # after every push: numpy's costs 40x more
+        if ratio < self.config.tracker.min_fit_ratio:
+            return f"only {ratio:.0%} of the events near the ring lie on its edges"
+        return None
 
     def silent_edges(self, supported: np.ndarray) -> int:
         """Outer edges that hold no fresh events (``supported``: per edge) although the image
