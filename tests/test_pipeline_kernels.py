@@ -50,8 +50,8 @@ def _reference_bursts(
     events: np.ndarray, polarities: int, marks: tuple[int, ...] = (0,)
 ) -> set[tuple]:
     """(x, y, polarity index, start) of each pixel's latest burst and of its first burst from
-    each of the ``marks`` on, event by event: a burst ends after a gap of ``GAP_US`` or at an
-    event of the other polarity."""
+    each of the ``marks`` on, event by event: a burst ends at an event of the other polarity,
+    and with one polarity kept also after a gap of ``GAP_US``."""
     latest: dict[tuple, int] = {}
     firsts: list[dict[tuple, int]] = [{} for _ in marks]
     last: dict[tuple, int] = {}
@@ -60,7 +60,7 @@ def _reference_bursts(
         last.pop((key[0], key[1], 1 - key[2]), None)
         if key[2] >= polarities:
             continue
-        if key not in last or t - last[key] > GAP_US:
+        if key not in last or (polarities == 1 and t - last[key] > GAP_US):
             latest[key] = int(t)
             for mark, first in zip(marks, firsts, strict=True):
                 if t >= mark and key not in first:
@@ -106,6 +106,20 @@ def test_triage_keeps_each_pixels_latest_and_first_marked_burst_starts(
     expected = _on_grid(_reference_bursts(events, 2 if both else 1, marks), stride)
     got = _as_tuples(triage.bursts(-(1 << 20), 1 << 20, (0, WIDTH, 0, HEIGHT)))
     assert len(got) == len(set(got)) and set(got) == expected
+
+
+def test_with_both_polarities_only_a_reversal_starts_a_burst():
+    """A toggling cell's pixels reverse polarity at each switch. A lone OFF event long after the
+    pixel went dark (its slow settling, a redraw of the same level) is no switch, while the same
+    pixel turning on again is one."""
+    triage = EventTriage(DISTORTED.undistort_table, GAP_US, True)
+    triage.reset(0)
+    t = [0, 40, 80, 5_000, 9_000, 9_050]  # a switch off, a lone OFF, a switch on
+    triage(make_events(t, [3] * 6, [2] * 6, [-1, -1, -1, -1, 1, 1]))
+    late = triage.bursts(1_000, 20_000, (0, WIDTH, 0, HEIGHT))
+    assert _as_tuples(late) == [(3, 2, 0, 9_000)]
+    first = triage.bursts(0, 1_000, (0, WIDTH, 0, HEIGHT))
+    assert _as_tuples(first) == [(3, 2, 1, 0)]
 
 
 @pytest.mark.parametrize("stride", [1, 2, 3, 4])

@@ -53,7 +53,7 @@ from eventocc.receiver.pipeline.receiver import (
     Receiver,
     StateChange,
 )
-from eventocc.receiver.pipeline.tracker import edge_polarities
+from eventocc.receiver.pipeline.tracker import EdgeTracker, edge_polarities
 from eventocc.receiver.sim import Recording, StaticMotion, simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
@@ -616,16 +616,22 @@ def test_a_relock_soon_after_a_verified_frame_keeps_its_turn(slow_clip, monkeypa
         calls.append(found)
         return found if len(calls) == 1 else _turned(found, config, 2)
 
-    off_edges, lost = Receiver._off_edges, []
+    off_edges, push, lost, verified = EdgeTracker.off_edges, StreamDecoder.push, [], []
+
+    def noting_verified(self, bits, confidence):
+        messages = push(self, bits, confidence)
+        verified.append(self.verified_bits > 0)
+        return messages
 
     def lose_once(self):
-        if not lost and self.stream.verified_bits:
+        if not lost and any(verified):
             lost.append(True)
             return "lost once by the test"
         return off_edges(self)
 
     monkeypatch.setattr(receiver_module, "detect", misread)
-    monkeypatch.setattr(Receiver, "_off_edges", lose_once)
+    monkeypatch.setattr(StreamDecoder, "push", noting_verified)
+    monkeypatch.setattr(EdgeTracker, "off_edges", lose_once)
     run = _replay(*slow_clip)
     locks = [c.t_us for c in run["changes"] if c.state == TRACKING]
     assert lost and len(locks) == 2, [(c.t_us, c.reason) for c in run["changes"]]

@@ -19,6 +19,7 @@ from eventocc.receiver.pipeline.detector import (
     MarkerNotFound,
     blink_phase,
     check_quadrilateral,
+    largest_region,
     locator_band,
     quadrilateral,
 )
@@ -327,3 +328,15 @@ def test_frame_truth_scores_the_streams_first_refresh(profile, expected):
     refresh (no symbol). It used to be matched to refresh 1, ``fast``'s at half its bits wrong."""
     truth = FrameTruth(StreamEncoder(bytes(300), profile=profile, cells=16), 60.0)
     assert truth.errors(truth.sent(0), 8_300) == expected
+
+
+def test_the_blinking_region_joins_blobs_less_than_a_cell_apart():
+    """At a few pixels per cell a row of cells that stayed dark for the window can cut a whole
+    side off the marker's heat: it is still the marker. Another blob several cells away is not."""
+    heat = np.zeros((400, 400), np.float32)
+    heat[110:300, 50:250] = 1.0  # most of a 34-cell locator, ~6 px per cell
+    heat[60:105, 50:250] = 1.0  # its top, one dark row of cells apart
+    heat[60:105, 300:340] = 1.0  # something else blinking, eight cells away
+    hull = largest_region(heat, 0.2, locator_side=34)
+    assert hull[:, 1].min() == 60 and hull[:, 1].max() == 299
+    assert hull[:, 0].max() == 249

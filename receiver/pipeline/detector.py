@@ -187,24 +187,31 @@ def blink_heatmap(
     return heat, triplets
 
 
-def largest_region(heat: np.ndarray, threshold: float) -> np.ndarray:
+def largest_region(heat: np.ndarray, threshold: float, locator_side: int) -> np.ndarray:
     """Convex hull (k, 2) of the largest above-threshold heat region, nearby blobs included.
 
-    The dashed sides of the inner locator are separate blobs, so blobs within a tenth of the
-    largest region's size join it."""
+    The marker's heat breaks into blobs wherever its cells stay dark for the window (the
+    dashed sides of the inner locator, runs of black payload cells), and at a few pixels per
+    cell a whole corner of it can come apart. Blobs less than a cell apart are one region: the
+    above-threshold pixels are dilated by about a cell (the largest blob's size over the
+    locator's cells) before the regions are told apart."""
     peak = float(np.percentile(heat[heat > 0], 99.5)) if np.any(heat > 0) else 0.0
     if peak <= 0:
         raise MarkerNotFound("temporal: no pixel blinks at the data-frame rate")
     binary = (heat >= threshold * peak).astype(np.uint8)
-    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    hulls = [cv2.convexHull(c) for c in contours]
-    best = hulls[int(np.argmax([cv2.contourArea(h) for h in hulls]))]
-    x, y, w, h = cv2.boundingRect(best)
-    pad = max(2, int(0.1 * max(w, h)))
-    lo, hi = np.array([x - pad, y - pad]), np.array([x + w + pad, y + h + pad])
-    # The hull of the box's pixels is that of their outlines: far fewer points.
-    lo, hi = np.maximum(lo, 0), hi + 1
-    return cv2.convexHull(outline(binary[lo[1] : hi[1], lo[0] : hi[0]]) + lo).reshape(-1, 2)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    if n < 2:
+        raise MarkerNotFound("temporal: no pixel blinks at the data-frame rate")
+    largest = stats[1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))]
+    cell_px = max(largest[cv2.CC_STAT_WIDTH], largest[cv2.CC_STAT_HEIGHT]) / locator_side
+    reach = max(1, round(cell_px))
+    joined = cv2.dilate(binary, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach + 1,) * 2))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(joined, connectivity=8)
+    region = (labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))) & (binary > 0)
+    x, y, w, h = cv2.boundingRect(region.astype(np.uint8))
+    # The hull of the region's pixels is that of their outlines: far fewer points.
+    box = region[y : y + h, x : x + w].astype(np.uint8)
+    return cv2.convexHull(outline(box) + np.array([x, y])).reshape(-1, 2)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -464,7 +471,7 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     """The paper's path: per-pixel triplets, the locator band's phase, the phase-locked image."""
     params, cam = config.detector, config.camera
     heat, triplets = blink_heatmap(parts, cam.width, cam.height, config.blink_hz, params.sigma_frac)
-    hull = largest_region(heat, params.heat_threshold)
+    hull = largest_region(heat, params.heat_threshold, config.geometry.locator_side)
     mask = np.zeros((cam.height, cam.width), np.uint8)
     cv2.fillConvexPoly(mask, hull.astype(np.int32), 1)
     # A short window cannot resolve the blink frequency by its DFT, but every triplet measures

@@ -78,25 +78,30 @@ def _burst(pixels, e, at, epoch, gap_us, mark, mark2):
     """Note event ``e`` in the burst times of its pixel, ``pixels[at]`` (ON only when the
     surface has one polarity): the latest burst's start and last event, and the first burst's
     start from ``mark`` on and from ``mark2`` on. An event of the other polarity ends a burst: a
-    moving edge darkens and relights a pixel well within ``gap_us``. (The two surfaces' cases
-    are written apart, each with its polarity a constant where it can be: the still N = 80
-    clip's pass took a fifth less time than with the polarity an index throughout.)"""
+    moving edge darkens and relights a pixel well within ``gap_us``.
+
+    With both polarities (``fast``), only a change of polarity starts a burst: each switch of a
+    toggling cell reverses its pixels' polarity, while an event of the same polarity long after
+    the last (a pixel's slow settling towards black, a redraw of the same level) is no switch.
+    (The two surfaces' cases are written apart, each with its polarity a constant where it can
+    be: a fifth faster than with the polarity an index throughout.)"""
     ti = np.int32(e.t - epoch)
     if pixels.shape[1] == 1:
         if e.p > 0:
-            _note(pixels, at, 0, ti, gap_us, mark, mark2)
+            _note(pixels, at, 0, ti, ti - pixels[at, 0, 1] > gap_us, mark, mark2)
         else:
             pixels[at, 0, 1] = _NEVER
     else:
         d = 0 if e.p > 0 else 1
         pixels[at, 1 - d, 1] = _NEVER
-        _note(pixels, at, d, ti, gap_us, mark, mark2)
+        _note(pixels, at, d, ti, pixels[at, d, 1] == _NEVER, mark, mark2)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _note(pixels, at, d, ti, gap_us, mark, mark2):
-    """``_burst`` for an event of polarity index ``d`` at time ``ti``."""
-    if ti - pixels[at, d, 1] > gap_us:
+def _note(pixels, at, d, ti, starts, mark, mark2):
+    """``_burst`` for an event of polarity index ``d`` at time ``ti``; ``starts``: it begins a
+    burst."""
+    if starts:
         pixels[at, d, 0] = ti
         if pixels[at, d, 2] < mark:
             pixels[at, d, 2] = ti
