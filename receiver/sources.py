@@ -5,7 +5,9 @@ A source has a sensor size and yields event chunks in time order. It is named by
 - ``sim:`` the virtual event camera, watching what the server's transmitter plays right now;
 - ``file:PATH`` (or just ``PATH``) a recording, replayed at real-time pace or as fast as possible;
 - ``nd:`` / ``metavision:[SERIAL]`` / ``dv:`` a live camera through an optional backend
-  (neuromorphic-drivers, Metavision's Python API, dv-processing).
+  (neuromorphic-drivers, Metavision's Python API, dv-processing);
+- ``nd-replay:PATH`` a recording replayed as a USB camera through the neuromorphic-drivers
+  path (``live_replay``).
 
 A live source (a camera, a recording at real-time pace, the virtual camera) never lets its
 consumer fall more than ``MAX_LAG_S`` behind: it skips ahead to what it delivers now, and
@@ -19,9 +21,12 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from receiver.live_controls import CameraSettings
 
 __all__ = [
     "MAX_LAG_S",
@@ -270,8 +275,15 @@ class RecordingSource:
         return self._live(paced(self._stream)) if self.realtime else iter(self._stream)
 
 
-def open_source(uri: str, *, realtime: bool = True, **virtual_camera_options) -> EventSource:
-    """The source a URI names (see the module docstring); raises ``SourceError`` if it can't."""
+def open_source(
+    uri: str,
+    *,
+    realtime: bool = True,
+    live_settings: CameraSettings | None = None,
+    **virtual_camera_options,
+) -> EventSource:
+    """The source a URI names (see the module docstring); raises ``SourceError`` if it can't.
+    ``live_settings``: a live camera's ``live_controls.CameraSettings`` (default: its own)."""
     scheme, sep, rest = uri.partition(":")
     if not sep or len(scheme) == 1:  # a plain path (or a Windows drive letter)
         scheme, rest = "file", uri
@@ -284,7 +296,7 @@ def open_source(uri: str, *, realtime: bool = True, **virtual_camera_options) ->
     from receiver.live_cameras import LIVE_BACKENDS, open_live_camera
 
     if scheme in LIVE_BACKENDS:
-        return open_live_camera(scheme, rest)
+        return open_live_camera(scheme, rest, live_settings)
     raise SourceError(
         f"unknown source {uri!r}: use sim:, file:PATH, or a live camera "
         f"({', '.join(f'{name}:' for name in LIVE_BACKENDS)})"
