@@ -85,7 +85,7 @@ def load_camera_settings(path: Path) -> CameraSettings:
     biases = doc.get("biases") or {}
     if not isinstance(biases, dict) or not all(_is_int(v) for v in biases.values()):
         raise SourceError(f"camera config {path}: biases must map names to whole numbers")
-    rate = doc.get("max_event_rate", DEFAULT_MAX_EVENT_RATE)
+    rate = _number(doc.get("max_event_rate", DEFAULT_MAX_EVENT_RATE))
     period = doc.get("rate_period_us", DEFAULT_RATE_PERIOD_US)
     if not (rate is None or _is_number(rate)) or not _is_int(period):
         raise SourceError(
@@ -99,6 +99,14 @@ def load_camera_settings(path: Path) -> CameraSettings:
 
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _number(value: Any) -> Any:
+    """YAML 1.1 reads ``20e6`` (no dot, no sign) as a string: take it as the number it says."""
+    try:
+        return float(value) if isinstance(value, str) else value
+    except ValueError:
+        return value
 
 
 def _is_number(value: Any) -> bool:

@@ -126,7 +126,7 @@ class NdCamera:
         last_us: int | None = None  # the last event kept
         arrived_us = kept_us = 0
         skipped = False
-        tie: tuple[float, int] | None = None  # (wall clock, event time) since the last skip
+        tie: tuple[float, int] | None = None  # (driver's wall clock, event time) since a skip
         with self.device as device:
             for status, packet in device:
                 self.readings.poll()
@@ -137,16 +137,16 @@ class NdCamera:
                 overflows = packet.polarity_events_overflow_indices
                 self.overflow.packet(t, overflows, None if skipped else last_us)
                 start_us, end_us = int(t[0]), int(t[-1])
-                delay = status.delay()
+                delay, now = status.delay(), status.system_time
                 if delay is not None and delay > self.max_lag_s:
                     device.clear_backlog(until=0)
                     self.skips += 1
-                    if tie is not None and self._clock() > tie[0]:
-                        self._note.skipped((end_us - tie[1]) / 1e6 / (self._clock() - tie[0]))
+                    if tie is not None and now > tie[0]:
+                        self._note.skipped((end_us - tie[1]) / 1e6 / (now - tie[0]))
                     skipped, tie = True, None
                     continue
                 if tie is None:
-                    tie = (self._clock(), end_us)
+                    tie = (now, end_us)
                 span = end_us - (start_us if last_us is None else last_us)
                 arrived_us += span
                 kept_us += end_us - start_us if skipped else span

@@ -5,15 +5,16 @@ yielding its ``Status`` and ``Evt3Packet``, ``backlog``, ``clear_backlog``, ``ov
 ``update_configuration``, ...), and the timing of a USB camera: the recording's events fill USB
 buffers of ``buffer_us`` at the pace of its clock; a buffer goes into a ring of
 ``ring_length`` when complete, or is lost when the ring is full, and the next one kept marks
-the loss in ``polarity_events_overflow_indices``, as the driver does. Each ``next`` hands over
-up to ``packets_per_next`` buffers, or waits for one. The sensor's rate limiter is applied when
+the loss in ``polarity_events_overflow_indices``, as the driver does. Each ``next`` decodes and
+hands over up to ``packets_per_next`` buffers, or waits for one; ``clear_backlog`` drops
+buffers undecoded. The sensor's rate limiter is applied when
 configured; a recording's biases are what they were. So the whole live path
 (``live_nd.NdCamera``, the daemon, the pipeline) runs on any machine.
 """
 
 from __future__ import annotations
 
-import logging
+import dataclasses
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -25,8 +26,6 @@ import numpy as np
 from receiver.events import rechunk_by_time
 from receiver.live_nd import POLARITY_DTYPE
 from receiver.sources import LiveClock, SourceError
-
-log = logging.getLogger(__name__)
 
 
 class RawReplay:
@@ -62,6 +61,9 @@ class RawReplay:
         self.readings = readings
         self.configuration = nd.prophesee_evk4.Configuration()
         self.dropped_packets = 0
+        """Buffers lost because the ring was full."""
+        self.decoded = 0
+        """Buffers handed over decoded (the rest were lost, or cleared from the backlog)."""
         self._clock = clock
         self._pace = LiveClock(clock=clock, sleep=sleep)
         self._buffers = self._cut()
@@ -95,7 +97,8 @@ class RawReplay:
         starts = np.cumsum([0] + [len(events) for _, _, events in taken[:-1]])
         lost_at = [int(start) for start, (_, lost, _) in zip(starts, taken, strict=True) if lost]
         packet = self._nd.Evt3Packet()
-        packet.polarity_events = np.concatenate([events for _, _, events in taken])
+        packet.polarity_events = _polarity_events(np.concatenate([ev for _, _, ev in taken]))
+        self.decoded += len(taken)
         packet.polarity_events_overflow_indices = np.array(lost_at, np.uint64) if lost_at else None
         packet.trigger_events = packet.trigger_events_overflow_indices = None
         status = self._nd.status.Status(
@@ -136,14 +139,17 @@ class RawReplay:
         return f"replay:{self._stream.path.name}"
 
     def biases_bounds(self) -> Any:
-        return self._nd.prophesee_evk4.BiasesBounds()
+        """Any value: ``update_configuration`` then says a recording keeps its biases."""
+        evk4 = self._nd.prophesee_evk4
+        wide = evk4.Bounds(-(1 << 15), (1 << 15) - 1)
+        return evk4.BiasesBounds(**{f.name: wide for f in dataclasses.fields(evk4.BiasesBounds)})
 
     def connection(self) -> Any:
         return self._nd.Connection.USB_SUPER
 
     def update_configuration(self, configuration: Any) -> None:
         if configuration.biases != self.configuration.biases:
-            log.warning("a recording's biases are those it was recorded with: not changed")
+            raise SourceError("a recording keeps the biases it was recorded with: drop --bias")
         self.configuration = configuration
 
     def temperature_celsius(self) -> float:
@@ -183,10 +189,14 @@ class RawReplay:
         for chunk in rechunk_by_time(self._stream, window):
             limited = _limit(chunk, limiter)
             if len(limited):
-                events = np.empty(len(limited), POLARITY_DTYPE)
-                events["t"], events["x"], events["y"] = limited["t"], limited["x"], limited["y"]
-                events["on"] = limited["p"] > 0
-                yield events
+                yield limited
+
+
+def _polarity_events(events: np.ndarray) -> np.ndarray:
+    """Our events as the driver's ``polarity_events``."""
+    out = np.empty(len(events), POLARITY_DTYPE)
+    out["t"], out["x"], out["y"], out["on"] = events["t"], events["x"], events["y"], events["p"] > 0
+    return out
 
 
 def _limit(events: np.ndarray, limiter: Any) -> np.ndarray:
