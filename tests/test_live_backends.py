@@ -10,17 +10,24 @@ import dataclasses
 import inspect
 import logging
 import re
+import sys
+import types
 import typing
+from pathlib import Path
 
 import neuromorphic_drivers as nd
 import numpy as np
 import pytest
 
-from receiver.events import make_events
+from occ.report import MessageReport
+from receiver.daemon import Daemon, OutputFolder
+from receiver.events import concat, make_events
+from receiver.io import read_events
 from receiver.live_cameras import METAVISION_FACILITIES, open_live_camera
 from receiver.live_controls import CameraSettings
 from receiver.live_nd import POLARITY_DTYPE, NdCamera, NdDevice, configure
 from receiver.sources import SourceError
+from tests.screen import SCREEN_MESSAGE, ReportSink, screen_receiver
 
 
 def members(cls: type) -> set[str]:
@@ -291,3 +298,77 @@ def test_the_event_arrays_the_backends_build_are_ours() -> None:
     events["t"], events["on"] = [5, 6, 7], [True, False, True]
     built = make_events(events["t"].astype(np.int64), events["x"], events["y"], events["on"])
     assert built["p"].tolist() == [1, -1, 1] and built["t"].dtype == np.int64
+
+
+# --- each backend through the daemon into a decoded message ---------------------------------
+def head(recording: Path, seconds: float) -> np.ndarray:
+    events = concat(read_events(recording / "events.raw"))
+    return events[events["t"] < seconds * 1e6]
+
+
+def decoded_through_the_daemon(source, tmp_path: Path) -> list[bytes]:
+    sink = ReportSink()
+    Daemon(source, screen_receiver(), sink, OutputFolder(tmp_path / "out")).run()
+    return [m.data for m in sink.of(MessageReport)]
+
+
+def test_the_dv_backend_on_dv_processings_own_input_decodes_the_message(
+    screen_recording, tmp_path, monkeypatch
+) -> None:
+    """The camera: dv-processing's recording reader, an input of the same declared class as
+    its cameras (``InputBase``), on the recording written by its own writer."""
+    import dv_processing as dv
+
+    store = dv.EventStore()
+    for t, x, y, p in head(screen_recording, 1.0).tolist():
+        store.push_back(t, x, y, p > 0)
+    path = str(tmp_path / "screen.aedat4")
+    writer = dv.io.MonoCameraWriter(path, dv.io.MonoCameraWriter.EventOnlyConfig("DVX", (320, 180)))
+    writer.writeEvents(store)
+    del writer  # closes the file
+    monkeypatch.setattr(dv.io.camera, "open", lambda *args: dv.io.MonoCameraRecording(path))
+    camera = open_live_camera("dv")
+    assert (camera.width, camera.height) == (320, 180)
+    assert decoded_through_the_daemon(camera, tmp_path) == [SCREEN_MESSAGE]
+
+
+def test_the_metavision_backend_on_a_device_of_the_hals_shape_decodes_the_message(
+    screen_recording, tmp_path, monkeypatch
+) -> None:
+    """Metavision's SDK is not on PyPI: its modules here are stand-ins with the names the
+    backend imports and the array layout its documentation gives (x, y, p, t)."""
+    events = head(screen_recording, 1.0)
+    layout = np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")])
+
+    class EventsIterator:
+        @classmethod
+        def from_device(cls, device, delta_t):
+            iterator = cls()
+            iterator.delta_t = delta_t
+            return iterator
+
+        def get_size(self):
+            return 180, 320
+
+        def __iter__(self):
+            for start in range(0, int(events["t"][-1]) + 1, self.delta_t):
+                window = events[(events["t"] >= start) & (events["t"] < start + self.delta_t)]
+                out = np.empty(len(window), layout)
+                for name in ("x", "y", "t"):
+                    out[name] = window[name]
+                out["p"] = window["p"] > 0
+                yield out
+
+    device = MetavisionDevice()
+    event_io = types.ModuleType("metavision_core.event_io")
+    event_io.EventsIterator = EventsIterator
+    raw_reader = types.ModuleType("metavision_core.event_io.raw_reader")
+    raw_reader.initiate_device = lambda path: device
+    monkeypatch.setitem(sys.modules, "metavision_core", types.ModuleType("metavision_core"))
+    monkeypatch.setitem(sys.modules, "metavision_core.event_io", event_io)
+    monkeypatch.setitem(sys.modules, "metavision_core.event_io.raw_reader", raw_reader)
+    camera = open_live_camera("metavision")
+    assert decoded_through_the_daemon(camera, tmp_path) == [SCREEN_MESSAGE]
+    report = camera.camera_report()
+    assert (report.temperature_c, report.illuminance, report.illuminance_unit) == (41, 250, "lux")
+    assert ("set_cd_event_rate", 100_000_000) in device.calls

@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from occ.report import HealthReport, MessageReport
-from occ.stream import StreamEncoder
 from receiver.calibration import save_calibration
 from receiver.daemon import Daemon, OutputFolder
 from receiver.events import concat, make_events
@@ -24,15 +23,12 @@ from receiver.io import read_events, write_events
 from receiver.live_controls import CameraSettings
 from receiver.live_nd import NdCamera
 from receiver.live_replay import RawReplay
-from receiver.pipeline.config import ReceiverConfig
-from receiver.pipeline.receiver import MessageOutput, Receiver
-from receiver.sim import Scene, StaticMotion, simulate
-from receiver.sim.recording import write_recording
+from receiver.pipeline.receiver import MessageOutput
 from receiver.sources import MAX_LAG_S
-from receiver.virtual_camera import default_camera, virtual_sensor
+from receiver.virtual_camera import default_camera
+from tests.screen import SCREEN_MESSAGE, ReportSink, screen_receiver
 
 ROOT = Path(__file__).resolve().parent.parent
-MESSAGE = b"through a replayed EVK4, the driver's packets and the daemon"
 SPACING_US = 10
 
 
@@ -112,63 +108,35 @@ def test_the_sensors_rate_limiter_thins_each_period(steady, wall) -> None:
 
 
 # --- the whole chain ----------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory) -> Path:
-    """2.5 s of the demo's virtual camera (320x180) watching a robust stream, as EVT 3.0."""
-    scene = Scene(
-        encoder=StreamEncoder(MESSAGE, name="replayed.txt", profile="robust", cells=16),
-        marker_size_m=0.272,
-        camera=default_camera(),
-        motion=StaticMotion(distance_m=0.6),
-        sensor=virtual_sensor(),
-        seed=0,
-    )
-    out = tmp_path_factory.mktemp("replay")
-    write_recording(simulate(scene, 2.5), out, progress=False)
-    save_calibration(default_camera(), out / "camera.yaml")
-    return out
 
 
-def receiver() -> Receiver:
-    return Receiver(ReceiverConfig(default_camera(), cells=16, profile="robust"))
+def test_the_daemon_decodes_a_replayed_evk4_as_it_decodes_the_file(
+    screen_recording, tmp_path
+) -> None:
+    offline = screen_receiver()  # also loads the pipeline's compiled kernels before the clock runs
+    outputs = [o for c in read_events(screen_recording / "events.raw") for o in offline.push(c)]
+    assert [o.message.data for o in outputs if isinstance(o, MessageOutput)] == [SCREEN_MESSAGE]
 
-
-def test_the_daemon_decodes_a_replayed_evk4_as_it_decodes_the_file(recording, tmp_path) -> None:
-    offline = receiver()  # also loads the pipeline's compiled kernels before the clock runs
-    outputs = [o for c in read_events(recording / "events.raw") for o in offline.push(c)]
-    assert [o.message.data for o in outputs if isinstance(o, MessageOutput)] == [MESSAGE]
-
-    device = RawReplay(recording / "events.raw", readings=(38.25, 1500))
-    sink = Sink()
-    daemon = Daemon(NdCamera(device), receiver(), sink, OutputFolder(tmp_path / "out"))
+    device = RawReplay(screen_recording / "events.raw", readings=(38.25, 1500))
+    sink = ReportSink()
+    daemon = Daemon(NdCamera(device), screen_receiver(), sink, OutputFolder(tmp_path / "out"))
     summary = daemon.run()
     (message,) = sink.of(MessageReport)
-    assert message.data == MESSAGE and message.name == "replayed.txt"
-    assert summary.events == sum(len(c) for c in read_events(recording / "events.raw"))
+    assert message.data == SCREEN_MESSAGE and message.name == "replayed.txt"
+    assert summary.events == sum(len(c) for c in read_events(screen_recording / "events.raw"))
     cameras = [h.camera for h in sink.of(HealthReport)]
     assert cameras and all(c is not None for c in cameras)
     assert (cameras[-1].temperature_c, cameras[-1].illuminance) == (38.25, 1500)
     assert cameras[-1].usb_overflows == 0 and cameras[-1].max_event_rate == 100e6
 
 
-class Sink:
-    def __init__(self) -> None:
-        self.reports: list = []
-
-    def publish(self, report, *, durable: bool) -> None:
-        self.reports.append(report)
-
-    def of(self, kind: type) -> list:
-        return [r for r in self.reports if isinstance(r, kind)]
-
-
-def test_receive_from_nd_replay_reaches_the_server(recording, serve_app, tmp_path) -> None:
+def test_receive_from_nd_replay_reaches_the_server(screen_recording, serve_app, tmp_path) -> None:
     """The real CLI on a cold start: whatever the pipeline's first second costs, the live
     path skips what waits and the message still arrives."""
     base_url, _ = serve_app()
     command = [sys.executable, "-m", "receiver.cli", "receive"]
-    command += ["--source", f"nd-replay:{recording / 'events.raw'}"]
-    command += ["--calibration", str(recording / "camera.yaml"), "--cells", "16"]
+    command += ["--source", f"nd-replay:{screen_recording / 'events.raw'}"]
+    command += ["--calibration", str(screen_recording / "camera.yaml"), "--cells", "16"]
     command += ["--profile", "robust", "--server", base_url, "--out", str(tmp_path / "out")]
     command += ["--max-event-rate", "50e6"]
     done = subprocess.run(
