@@ -128,7 +128,7 @@ class NdCamera:
         skipped = False
         tie: tuple[float, int] | None = None  # (driver's wall clock, event time) since a skip
         with self.device as device:
-            for status, packet in device:
+            for status, packet in _until_stopped(device):
                 self.readings.poll()
                 events = None if packet is None else packet.polarity_events
                 if events is None or not len(events):
@@ -156,6 +156,15 @@ class NdCamera:
                     self._note.measured(self.speed)
                     arrived_us = kept_us = 0
                 yield make_events(t, events["x"], events["y"], events["on"])
+
+
+def _until_stopped(device: NdDevice) -> Iterator[tuple[Any, Any]]:
+    """The device's packets; a driver error (unplugged, USB failure) ends them with a
+    ``SourceError`` saying so."""
+    try:
+        yield from device
+    except RuntimeError as error:
+        raise SourceError(f"the camera stopped: {error}") from error
 
 
 def configure(device: NdDevice, settings: CameraSettings) -> float | None:

@@ -179,6 +179,22 @@ def test_the_nd_backend_yields_the_polarity_events_of_the_packets(monkeypatch) -
     assert device.configuration.rate_limiter is not None, "the default limit is set"
 
 
+def test_a_camera_that_stops_says_so() -> None:
+    class Unplugged(ScriptedEvk4):
+        def __next__(self):
+            if next(self.count) == 1:
+                raise RuntimeError("Disconnected")  # what the driver raises, as its message
+            return super().__next__()
+
+    device = Unplugged([(0.001, packet([10, 20]))])
+    device.count = iter(range(2))
+    chunks = NdCamera(device).chunks()
+    assert next(chunks)["t"].tolist() == [10, 20]
+    with pytest.raises(SourceError, match="the camera stopped: Disconnected"):
+        next(chunks)
+    assert device.exited, "and it is closed"
+
+
 def test_usb_overflows_are_counted_with_the_event_time_they_lost(caplog) -> None:
     device = ScriptedEvk4(
         [
