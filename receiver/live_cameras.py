@@ -115,7 +115,7 @@ def _metavision_controls(device, settings: CameraSettings) -> float | None:
         elif settings.max_event_rate is not None:
             log.info("this camera has no event rate controller: no limit set")
     else:
-        limit = settings.events_per_period * 1e6 / settings.rate_period_us
+        limit = settings.rate_in_force
         erc.set_cd_event_rate(int(limit))
         erc.enable(True)
     if settings.biases:

@@ -67,6 +67,11 @@ class CameraSettings:
         assert self.max_event_rate is not None
         return int(self.max_event_rate * self.rate_period_us / 1e6)
 
+    @property
+    def rate_in_force(self) -> float:
+        """Events/s the limiter lets through: ``max_event_rate`` in whole events per period."""
+        return self.events_per_period * 1e6 / self.rate_period_us
+
 
 def load_camera_settings(path: Path) -> CameraSettings:
     """A camera config file (the module docstring's keys, each optional)."""
@@ -138,11 +143,9 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
 
 def camera_settings(args: argparse.Namespace) -> CameraSettings:
     """The settings of ``add_camera_arguments``' options: the file's, then each option's."""
-    settings = (
-        CameraSettings()
-        if args.camera_config is None
-        else (load_camera_settings(args.camera_config))
-    )
+    settings = CameraSettings()
+    if args.camera_config is not None:
+        settings = load_camera_settings(args.camera_config)
     if args.max_event_rate is not None:
         settings = replace(settings, max_event_rate=args.max_event_rate or None)
     if args.bias:
@@ -153,13 +156,10 @@ def camera_settings(args: argparse.Namespace) -> CameraSettings:
 def _parse_biases(items: list[str]) -> dict[str, int]:
     biases = {}
     for item in items:
-        name, sep, value = item.partition("=")
-        try:
-            biases[name.strip()] = int(value)
-        except ValueError:
-            sep = ""
-        if not sep or not name.strip():
+        name, _, value = item.partition("=")
+        if not name.strip() or not value.strip().lstrip("+-").isdigit():
             raise SourceError(f"--bias {item!r}: write NAME=VALUE with a whole number")
+        biases[name.strip()] = int(value)
     return biases
 
 

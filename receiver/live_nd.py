@@ -15,6 +15,7 @@ import dataclasses
 import logging
 import sys
 import time
+import typing
 from collections.abc import Callable, Iterator
 from typing import Any, Protocol
 
@@ -112,7 +113,6 @@ class NdCamera:
             "count",
             clock=clock,
         )
-        self._clock = clock
         self._note = BehindNote("receiver", "it cannot process the events as fast as they come")
 
     def camera_report(self) -> CameraReport:
@@ -179,7 +179,7 @@ def configure(device: NdDevice, settings: CameraSettings) -> float | None:
         if hasattr(default, "rate_limiter"):
             limiter = vars(sys.modules[type(default).__module__])["RateLimiter"]
             changes["rate_limiter"] = limiter(settings.rate_period_us, settings.events_per_period)
-            limit = settings.events_per_period * 1e6 / settings.rate_period_us
+            limit = settings.rate_in_force
         else:
             log.info("the %s has no event-rate limiter: none set", getattr(name, "value", name))
     if settings.biases:
@@ -191,8 +191,6 @@ def configure(device: NdDevice, settings: CameraSettings) -> float | None:
 
 def _configuration_type(name: Any) -> type:
     """The package's ``Configuration`` class for the device called ``name`` (a ``nd.Name``)."""
-    import typing
-
     from neuromorphic_drivers.generated import unions
 
     for cls in typing.get_args(unions.Configuration):
