@@ -114,6 +114,22 @@ class ProgressReport(_Model):
     size: Count | None = None
 
 
+class CameraReport(_Model):
+    """What a live camera says of itself; None where it cannot say."""
+
+    temperature_c: float | None = None
+    illuminance: Annotated[float, Field(ge=0.0)] | None = None
+    illuminance_unit: Literal["lux", "count"] | None = None
+    """``lux`` (Metavision), or ``count``: the EVK4's light sensor's raw reading as
+    neuromorphic-drivers returns it (no unit; it changes with the light on the sensor)."""
+    max_event_rate: Annotated[float, Field(gt=0.0)] | None = None
+    """Events/s the sensor's own limiter lets through (None: no limiter in force)."""
+    usb_overflows: Count = 0
+    """Times the camera's USB ring overflowed and packets were lost, since it opened."""
+    usb_lost_s: Annotated[float, Field(ge=0.0)] = 0.0
+    """Event time those overflows lost."""
+
+
 class HealthReport(_Model):
     type: Literal["health"] = "health"
     cpu_load: Annotated[float, Field(ge=0.0)]
@@ -124,6 +140,8 @@ class HealthReport(_Model):
     """Seconds of events a live source delivers per second of its own (the virtual camera's
     simulation, a camera's or a real-time recording's events that the receiver kept up with);
     below 1 it skips ahead to stay live."""
+    camera: CameraReport | None = None
+    """A live camera's own readings and link losses (absent for other sources)."""
 
 
 class SurfaceReport(_Model):

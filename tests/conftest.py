@@ -79,3 +79,11 @@ def serve_app(tmp_path: Path) -> Iterator[ServeApp]:
     for server, thread in started:
         server.should_exit = True
         thread.join(10)
+
+
+@pytest.fixture(scope="session")
+def screen_recording(tmp_path_factory) -> Path:
+    """``tests.screen.write_screen_recording``'s recording, made once per test run."""
+    from tests.screen import write_screen_recording
+
+    return write_screen_recording(tmp_path_factory.mktemp("screen"))

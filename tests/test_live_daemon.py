@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import re
+import sys
 import time
 
 import numpy as np
@@ -215,8 +216,17 @@ def test_paced_waits_for_the_wall_clock_to_catch_up() -> None:
         ("metavision:", "install OpenEB or the Metavision SDK"),
     ],
 )
-def test_sources_say_what_to_fix(uri: str, message: str) -> None:
+def test_sources_say_what_to_fix(uri: str, message: str, monkeypatch) -> None:
+    # The dev extra installs the live backends' packages: here each is taken away.
+    for package in ("neuromorphic_drivers", "dv_processing", "metavision_core"):
+        monkeypatch.setitem(sys.modules, package, None)
     with pytest.raises(SourceError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        open_source(uri)
+
+
+@pytest.mark.parametrize("uri", ["nd:", "nd:00051234", "dv:"])
+def test_a_live_source_without_a_camera_says_so(uri: str) -> None:
+    with pytest.raises(SourceError, match=rf"live camera source {uri[:2]}: no camera opened \("):
         open_source(uri)
 
 

@@ -215,6 +215,7 @@ function drawState() {
     $("tracking-state").textContent = h.state;
     $("cpu-load").textContent = `${(100 * h.cpu_load).toFixed(0)} % of a core`;
     showSourceSpeed(h.source_speed);
+    showCamera(h.camera);
   }
   const f = state.lastFrame;
   if (f) {
@@ -231,6 +232,27 @@ function showSourceSpeed(speed) {
   if (speed == null) dd.textContent = "live";
   else if (!behind) dd.textContent = "keeps up with real time";
   else dd.textContent = `source at ${speed.toFixed(2)}x real time: skipping ahead to stay live`;
+}
+
+function showCamera(camera) {
+  // A live camera's own readings and its USB link's losses; other sources send none.
+  const dd = $("camera");
+  dd.dataset.state = camera?.usb_overflows ? "behind" : "live";
+  if (!camera) {
+    dd.textContent = "–";
+    return;
+  }
+  const parts = [];
+  if (camera.temperature_c != null) parts.push(`${camera.temperature_c.toFixed(1)} °C`);
+  if (camera.illuminance != null) {
+    const light = camera.illuminance.toFixed(0);
+    parts.push(camera.illuminance_unit === "lux" ? `${light} lux` : `light sensor ${light}`);
+  }
+  parts.push(camera.max_event_rate ? `limit ${formatRate(camera.max_event_rate, "ev/s")}` : "no rate limit");
+  if (camera.usb_overflows) {
+    parts.push(`USB lost packets ${camera.usb_overflows}x (${(1000 * camera.usb_lost_s).toFixed(0)} ms of events)`);
+  }
+  dd.textContent = parts.join(", ");
 }
 
 function drawSurface(u) {

@@ -8,7 +8,12 @@ when it is back. Ctrl-C stops it.
 
 Sources: ``sim:`` (default) the virtual event camera watching what the server's transmitter
 plays; ``file:PATH`` or ``PATH`` a recording; ``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live
-camera through an optional backend.
+camera through an optional backend; ``nd-replay:PATH`` a recording replayed as a USB camera
+through the neuromorphic-drivers path (its pace, USB ring and backlog).
+
+A live camera's own event-rate limiter (on by default, see ``--max-event-rate``) and biases are
+set from ``--camera-config FILE`` and the options below; its temperature and light reading,
+where it gives them, go to the dashboard.
 
 The receiver follows the link settings (profile, cells, refresh rate) of the server's
 transmitter page: the virtual camera's, and a live camera's, which is taken to watch that page.
@@ -27,6 +32,7 @@ from pathlib import Path
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES, LinkSettings
 from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.live.controls import add_camera_arguments, camera_settings
 from eventocc.receiver.live.daemon import (
     Daemon,
     DaemonConfig,
@@ -56,7 +62,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--source",
         default="sim:",
-        help="sim: | file:PATH | PATH | nd: | metavision:[SERIAL] | dv:  (default: sim:)",
+        help="sim: | file:PATH | PATH | nd: | metavision:[SERIAL] | dv: | nd-replay:PATH  "
+        "(default: sim:)",
     )
     p.add_argument(
         "--pace",
@@ -117,6 +124,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=100.0,
         help="poses sent to the server per second, at most (the file keeps all; default 100)",
     )
+    add_camera_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -168,6 +176,7 @@ def _run(args: argparse.Namespace) -> int:
     source = open_source(
         args.source,
         realtime=args.pace == "realtime",
+        live_settings=camera_settings(args),
         server_url=args.server,
         camera=camera,
         motion=args.motion,

@@ -328,11 +328,13 @@ class Daemon:
         """The periodic ephemeral updates: progress, health, thumbnail."""
         for stream in self.pipeline.stream.progress().values():
             self.sink.publish(ProgressReport(**stream), durable=False)
+        camera_report = getattr(self.source, "camera_report", None)  # a live camera's
         health = HealthReport(
             cpu_load=self._rate.cpu_load(),
             events_per_s=self._rate.events_per_s,
             state=self.state,
             source_speed=getattr(self.source, "speed", None),
+            camera=camera_report() if camera_report is not None else None,
         )
         self.sink.publish(health, durable=False)
         self.output.write_health(health)
