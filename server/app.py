@@ -11,6 +11,7 @@ from pathlib import Path
 from fastapi import FastAPI
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 
 from eventocc import __version__
 from eventocc.server.api import api_router
@@ -43,7 +44,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
-    app = FastAPI(
+    app = FastAPIOffline(  # the docs' assets served by the app: /docs works offline
         title="eventocc",
         summary="Screen-to-event-camera link: upload messages, play them as a dynamic marker.",
         version=__version__,
