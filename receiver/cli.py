@@ -9,7 +9,7 @@ import sys
 
 # Each module defines ``add_parser(subparsers)``, which registers its subcommand and sets
 # ``func(args) -> int`` as the parser default.
-COMMANDS: tuple[str, ...] = ("info", "convert", "decode", "receive", "simulate")
+COMMANDS: tuple[str, ...] = ("info", "convert", "decode", "receive", "simulate", "warmup")
 
 
 def build_parser() -> argparse.ArgumentParser:
