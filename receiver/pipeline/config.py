@@ -108,11 +108,22 @@ class TrackerParams:
     """theta_d: events this close to a projected edge join its cluster."""
     alpha: float = 0.3
     """Cluster slots per pixel of edge length."""
+    min_fill: float = 0.25
+    """An edge's latency indicator counts once this share of its slots is filled (noise rarely
+    fills a cluster)."""
     min_update_interval_us: int = 250
     """At most one pose update per interval (the authors' 4 kHz tick)."""
     max_update_interval_us: int = 1000
     """At least one pose update per interval while new events join the clusters, even if no
     indicator fired (the 1 kHz pose-rate target holds under slow motion too)."""
+    min_new_events: int = 16
+    """Events that must have joined the clusters since the last update before a timed one."""
+    velocity_span_us: int = 2000
+    """The edges' image velocity is fitted to the poses of this span (three at least), which
+    averages out the jitter of single poses."""
+    carry_us: int = 1000
+    """An event is carried along its edge's motion for at most this long: under half of
+    ``velocity_span_us``, so that the velocity's jitter and the poses' do not feed each other."""
     capture_us: int = 0
     """Recent events used to pull a detected pose onto the ring's edges (0: off). Off by
     default: with a still camera the only events near the ring are noise, and capture then
@@ -133,6 +144,12 @@ class TrackerParams:
     """Events near the edges while their image moves slower than this (the median of the
     edges' ends) are not judged (0: judged at any speed). A near-still ring fires little and
     its band is the blinking locator's, so its fit ratio says little about the pose."""
+    silent_sweep_px_per_ms: float = 1.0
+    """An outer edge whose image crosses itself this fast fires along its whole length within a
+    millisecond, as its inner edge does (``EdgeTracker.silent_edges``)."""
+    silent_updates: int = 30
+    """Consecutive pose updates that must find a silent swept outer edge to contradict the pose
+    (``EdgeTracker.contradicted``): one that slides off at a flow peak often comes back."""
     max_age_us: int = 30_000
     """Slots older than this are stale and leave the cluster."""
     max_events_per_ms: float | None = 4000.0
@@ -144,10 +161,9 @@ class TrackerParams:
     max_iterations: int = 10
 
     def __post_init__(self) -> None:
-        if self.fit_judgements < 1:
-            raise ValueError(
-                f"tracker fit_judgements must be at least 1, got {self.fit_judgements}"
-            )
+        for name in ("fit_judgements", "silent_updates"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"tracker {name} must be at least 1, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
