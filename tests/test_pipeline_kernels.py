@@ -277,15 +277,19 @@ def test_the_tile_lookups_thin_to_the_budget_from_the_share_near_the_edges():
 
 
 @pytest.mark.parametrize("stride", [1, 2])
-@pytest.mark.parametrize(("share", "every"), [(0.002, 4), (0.0, 1), (0.05, 1)])
+@pytest.mark.parametrize(
+    ("share", "every", "told"),
+    [(0.002, 4, {}), (0.002, 2, {"still_every": 2}), (0.0, 1, {}), (0.05, 1, {})],
+)
 def test_a_still_cameras_few_events_near_the_edges_are_looked_up_at_every_fourth(
-    share, every, stride
+    share, every, told, stride
 ):
     """When few events lay near the edges last time (a still camera: its tracker waits for
-    motion), only every fourth event is looked up in the tiles, however large the budget; when
-    none did, or enough, every one is. The surfaces take every event either way."""
+    motion), only every fourth event (or as told) is looked up in the tiles, however large the
+    budget; when none did, or enough, every one is. The surfaces take every event either way."""
     events = _stream(np.random.default_rng(7), 3000)
-    sparse, whole = (EventTriage(DISTORTED.undistort_table, GAP_US, False) for _ in range(2))
+    sparse = EventTriage(DISTORTED.undistort_table, GAP_US, False, **told)
+    whole = EventTriage(DISTORTED.undistort_table, GAP_US, False)
     for triage in (sparse, whole):
         triage.reset(0, stride)
         triage._tiles[:] = True

@@ -116,8 +116,8 @@ def test_a_silent_outer_edge_swept_by_the_motion_contradicts_the_pose():
     assert not run((1,), silent_updates=1000), "fewer pose updates than must find it silent"
 
 
-@pytest.mark.parametrize("name", ["fit_judgements", "silent_updates"])
-def test_tracker_counts_of_judgements_must_be_positive(name):
+@pytest.mark.parametrize("name", ["fit_judgements", "silent_updates", "still_lookup_every"])
+def test_tracker_counts_must_be_at_least_one(name):
     with pytest.raises(ValueError, match=f"tracker {name} must be at least 1, got 0"):
         replace(CONFIG.tracker, **{name: 0})
 

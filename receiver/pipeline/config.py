@@ -157,11 +157,17 @@ class TrackerParams:
     beyond (None: all). A hand-held 1280x720 camera puts ~37 M events a second near the ring,
     whose ~1000 slots each keep only their newest: 4 per slot and millisecond still refresh
     every slot between pose updates, and the tracker's cost stops growing with the event rate."""
+    still_near_share: float = 0.01
+    still_lookup_every: int = 4
+    """Below this share of the events near the edges (but above none), the triage looks up at
+    most every ``still_lookup_every``-th event in the tracker's tiles: a camera standing still
+    puts under 1% of its events there and its tracker waits for motion, which a quarter of them
+    shows as well as all of them do."""
     huber_px: float = 1.0
     max_iterations: int = 10
 
     def __post_init__(self) -> None:
-        for name in ("fit_judgements", "silent_updates"):
+        for name in ("fit_judgements", "silent_updates", "still_lookup_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"tracker {name} must be at least 1, got {getattr(self, name)}")
 

@@ -162,7 +162,11 @@ class Receiver:
         """While tracking, the events before this time have been processed."""
         # Allocated once (with the camera's undistortion table), reset at every lock.
         self._triage = EventTriage(
-            cam.undistort_table, config.refresh_us / 2, config.data_every == 1
+            cam.undistort_table,
+            config.refresh_us / 2,
+            config.data_every == 1,
+            still_share=config.tracker.still_near_share,
+            still_every=config.tracker.still_lookup_every,
         )
         self._next_attempt_us: int | None = None
         self._pending: Detection | None = None
