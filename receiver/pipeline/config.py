@@ -45,6 +45,9 @@ class DetectorParams:
     they cost more than this share of one core (on a megapixel sensor an attempt over a crowded
     window takes longer than the window). None keeps the spacing in event time alone, so that a
     recording decodes the same on any machine."""
+    min_tile_ratio: float = 0.25
+    """|X_k| / X_0 of a blink-map tile's signed events for it to blink: ON bursts and OFF bursts
+    half a period later add up, swept edges (both polarities at any phase) do not."""
     sigma_frac: float = 0.1
     """Width of the triplet-period Gaussian, as a fraction of the blink frequency."""
     heat_threshold: float = 0.2
@@ -186,6 +189,10 @@ class DecoderParams:
     lost_after_frames: int = 6
     """Consecutive frames without the inner locator before tracking counts as lost."""
     min_locator_score: float = 0.3
+    sure_contrast: float = 1 / 32
+    """A cell this share of the contrast away from the threshold has full confidence (half of it
+    makes an RS erasure): narrow, since an erasure pays only when a third of the erased bytes
+    are wrong, and under motion a cell an eighth of the contrast away is still mostly right."""
     turn_frames: int = 3
     """Read frames over which the inner locator's 'L' is judged (``min_turn_lead``)."""
     min_turn_lead: float = 0.5

@@ -497,7 +497,7 @@ class EdgeTracker:
         history = self.fit_history
         if len(history) < history.maxlen:
             return None
-        ratio = statistics.median(history)  # after every push: numpy's costs 40x more
+        ratio = statistics.median(history)  # after every push: cheaper than numpy's
         if ratio < self.config.tracker.min_fit_ratio:
             return f"only {ratio:.0%} of the events near the ring lie on its edges"
         return None
