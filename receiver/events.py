@@ -66,9 +66,8 @@ def rechunk_by_time(chunks: Iterable[np.ndarray], window_us: int) -> Iterator[np
     for chunk in chunks:
         if not len(chunk):
             continue
-        # One contiguous copy of the times per chunk: searching the structured field copies
-        # what is left of it for every window (a 1280x720 EVT 3.0 recording read in 10 ms
-        # windows took 2.8 CPU s where it now takes 1.7).
+        # One contiguous copy of the times per chunk: searching the structured field would copy
+        # what is left of it for every window.
         t, start = np.ascontiguousarray(chunk["t"]), 0
         if edge is None:
             edge = (int(t[0]) // window_us + 1) * window_us

@@ -4,6 +4,8 @@ go either way lose confidence. No simulator: bursts are placed on the pixels dir
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -129,6 +131,11 @@ def test_only_cells_that_could_go_either_way_become_erasures():
     erasure_below = 0.5  # the framed profiles' RS erasure level
     assert np.all(read.confidence[0, :2] >= erasure_below)
     assert np.all(read.confidence[0, 2:4] < erasure_below)
+    assert read.confidence[1:].min() == 1.0
+    # Sure only half the contrast away (``DecoderParams.sure_contrast``): all four are erasures.
+    wide = replace(CONFIG, decoder=replace(CONFIG.decoder, sure_contrast=0.5))
+    read = CellReader(wide, first_burst_us=0.0)._classify(0, _density(payload), 1000)
+    assert np.all(read.confidence[0, :4] < erasure_below)
     assert read.confidence[1:].min() == 1.0
 
 

@@ -21,8 +21,6 @@ from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.locate import Box, events_between, outline, quadrilateral
 from eventocc.receiver.pipeline.pose import _residuals, project_ideal
 from eventocc.receiver.pipeline.tracker import (
-    _CARRY_US,
-    _VELOCITY_SPAN_US,
     EdgeTracker,
     _assign,
     _capture_points,
@@ -293,15 +291,19 @@ def test_the_tile_lookups_thin_to_the_budget_from_the_share_near_the_edges():
 
 
 @pytest.mark.parametrize("stride", [1, 2])
-@pytest.mark.parametrize(("share", "every"), [(0.002, 4), (0.0, 1), (0.05, 1)])
+@pytest.mark.parametrize(
+    ("share", "every", "told"),
+    [(0.002, 4, {}), (0.002, 2, {"still_every": 2}), (0.0, 1, {}), (0.05, 1, {})],
+)
 def test_a_still_cameras_few_events_near_the_edges_are_looked_up_at_every_fourth(
-    share, every, stride
+    share, every, told, stride
 ):
     """When few events lay near the edges last time (a still camera: its tracker waits for
-    motion), only every fourth event is looked up in the tiles, however large the budget; when
-    none did, or enough, every one is. The surfaces take every event either way."""
+    motion), only every fourth event (or as told) is looked up in the tiles, however large the
+    budget; when none did, or enough, every one is. The surfaces take every event either way."""
     events = _stream(np.random.default_rng(7), 3000)
-    sparse, whole = (EventTriage(DISTORTED.undistort_table, GAP_US, False) for _ in range(2))
+    sparse = EventTriage(DISTORTED.undistort_table, GAP_US, False, **told)
+    whole = EventTriage(DISTORTED.undistort_table, GAP_US, False)
     for triage in (sparse, whole):
         triage.reset(0, stride)
         triage._tiles[:] = True
@@ -523,7 +525,7 @@ def _tracker_and_points(seed: int, n: int):
 @example(0, [10] * 40)  # 40 poses within the span: more than the buffer first holds
 def test_edge_velocity_is_the_slope_over_the_recent_poses(seed, gaps):
     """The edges' ends move at the least-squares slope of their positions over the poses of
-    the last ``_VELOCITY_SPAN_US`` (at least the last three), however densely they came (its
+    the last ``velocity_span_us`` (at least the last three), however densely they came (its
     buffer outgrows its first size); before three poses, at the flow it started with."""
     tracker, _, _ = _tracker_and_points(seed, 1)
     rng = np.random.default_rng(seed)
@@ -537,7 +539,7 @@ def test_edge_velocity_is_the_slope_over_the_recent_poses(seed, gaps):
         assert not tracker._va.any() and not tracker._vb.any()
         return
     t = np.array(times, float)
-    keep = max(np.count_nonzero(t[-1] - t <= _VELOCITY_SPAN_US), 3)
+    keep = max(np.count_nonzero(t[-1] - t <= tracker.config.tracker.velocity_span_us), 3)
     slope = np.polyfit(t[-keep:], np.stack(ends[-keep:]).reshape(keep, -1), 1)[0]
     assert np.allclose(np.concatenate([tracker._va, tracker._vb]).ravel(), slope)
 
@@ -554,8 +556,9 @@ def test_cluster_assignment_matches_a_plain_loop(seed, moving):
     """The compiled assignment measures a block of events edge by edge and bins each event onto
     the edges of its mask; a loop over the events and their eight edges must give the same
     clusters and the same fit counts. Moving edges (up to ~10 px/ms) carry each point back to
-    the time the edges hold, by ``_CARRY_US`` at most."""
+    the time the edges hold, by ``carry_us`` at most."""
     tracker, xu, yu = _tracker_and_points(seed, 300)
+    q = tracker.config.tracker
     t = np.arange(len(xu), dtype=np.int64) * 10  # 0 .. 3 ms
     ref_us = 1000
     rng = np.random.default_rng(seed)
@@ -565,7 +568,7 @@ def test_cluster_assignment_matches_a_plain_loop(seed, moving):
     near_count = on_count = 0
     for i in range(len(t)):
         near = on = False
-        dt = np.clip(t[i] - ref_us, -_CARRY_US, _CARRY_US)
+        dt = np.clip(t[i] - ref_us, -q.carry_us, q.carry_us)
         for e in range(8):
             a, b = tracker._a[e], tracker._b[e]
             w0 = _distance(xu[i], yu[i], a, b)[1]
@@ -581,7 +584,7 @@ def test_cluster_assignment_matches_a_plain_loop(seed, moving):
     fit = np.zeros(3, np.int64)
     a, b = tracker._a, tracker._b
     args = (a, b, va, vb, ref_us, gate, band, cap, sx, sy, st_, sd, sum_d, n_valid, fit)
-    _assign(xu, yu, t, 0, *args, 1 << 62, 1 << 62, 0.25)
+    _assign(xu, yu, t, 0, *args, 1 << 62, 1 << 62, q.min_fill, q.min_new_events, q.carry_us)
     assert np.array_equal(st_, expected_t)
     assert fit[:2].tolist() == [near_count, on_count]
     assert n_valid.tolist() == (expected_t >= 0).sum(axis=1).tolist()

@@ -244,6 +244,15 @@ def test_blinking_region_of_noise_is_a_clear_miss():
         blinking_region([ev], CONFIG)
 
 
+def test_a_tile_blinks_only_above_the_least_harmonic_ratio():
+    """``DetectorParams.min_tile_ratio``: no tile's signed events reach a ratio above 1."""
+    strict = replace(CONFIG, detector=replace(CONFIG.detector, min_tile_ratio=1.01))
+    marker = _moving_marker(np.zeros(2))
+    assert blinking_region([marker], CONFIG).harmonic_ratio > 0.3
+    with pytest.raises(MarkerNotFound, match="temporal: nothing blinks at 30 Hz"):
+        blinking_region([marker], strict)
+
+
 def _locator_image(geometry: MarkerGeometry, cell_px: int, border_px: int) -> np.ndarray:
     """Lit pixels of a data frame's locator region: the ring, a random payload, a dark gap of
     one ring, and the white ring's two edges as thin lines (what a swept ring leaves)."""

@@ -99,8 +99,9 @@ def test_a_silent_outer_edge_swept_by_the_motion_contradicts_the_pose():
     # The camera slides sideways at ~1.5 px/ms: the left and right edges sweep, top and bottom run
     # along the motion. A pose whose outer right edge then fires nothing is wrong (it lies on
     # the wall around the screen); a silent edge the motion runs along is no evidence.
-    def run(dropped: tuple[int, ...]) -> bool:
-        tracker = EdgeTracker(CONFIG, invert(_view()))
+    def run(dropped: tuple[int, ...], **params) -> bool:
+        config = replace(CONFIG, tracker=replace(CONFIG.tracker, **params))
+        tracker = EdgeTracker(config, invert(_view()))
         for k in range(40):
             truth = invert(_view(shift=(0.003 * k, 0.0)))
             x, y, t = _edge_events(truth, 1000 * k, seed=k)
@@ -111,6 +112,14 @@ def test_a_silent_outer_edge_swept_by_the_motion_contradicts_the_pose():
     assert run((1,)), "the outer right edge sweeps with the motion but fired nothing"
     assert not run(())
     assert not run((0,)), "the motion runs along the top edge: its silence is no evidence"
+    assert not run((1,), silent_sweep_px_per_ms=5.0), "slower than the sweep that must fire"
+    assert not run((1,), silent_updates=1000), "fewer pose updates than must find it silent"
+
+
+@pytest.mark.parametrize("name", ["fit_judgements", "silent_updates", "still_lookup_every"])
+def test_tracker_counts_must_be_at_least_one(name):
+    with pytest.raises(ValueError, match=f"tracker {name} must be at least 1, got 0"):
+        replace(CONFIG.tracker, **{name: 0})
 
 
 def test_stale_cluster_events_age_out():

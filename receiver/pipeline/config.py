@@ -33,19 +33,21 @@ class DetectorParams:
     """Temporal + spatial detection (Sec. IV-B)."""
 
     window_us: int = 70_000
-    """DFT window T: two blink periods at 60 Hz are enough to lock (the paper's 0.5 s made the
-    receiver wait half a second before it could read anything)."""
+    """DFT window T: two blink periods at 60 Hz are enough to lock, and the first frame can be
+    read as soon as the window is full (the paper's 0.5 s would delay it by half a second)."""
     retry_us: int = 17_500
     """Event time between detection attempts, each over the latest window: the marker locks
     within about a window plus a retry of coming into view. Under motion each attempt reads
-    another burst, and few read the inner locator clearly: on five 240x180 clips at 1 px/ms the
-    first locks came at 120-600 ms (median 400) one attempt per 35 ms, 120-340 (median 180) one
-    per 17.5 ms, with the same poses."""
+    another burst and few read the inner locator clearly, so attempts come about twice per blink
+    period."""
     max_cpu_share: float | None = None
     """Real-time sources only (``LIVE_CPU_SHARE``): failed attempts are spaced further apart when
     they cost more than this share of one core (on a megapixel sensor an attempt over a crowded
     window takes longer than the window). None keeps the spacing in event time alone, so that a
     recording decodes the same on any machine."""
+    min_tile_ratio: float = 0.25
+    """|X_k| / X_0 of a blink-map tile's signed events for it to blink: ON bursts and OFF bursts
+    half a period later add up, swept edges (both polarities at any phase) do not."""
     sigma_frac: float = 0.1
     """Width of the triplet-period Gaussian, as a fraction of the blink frequency."""
     heat_threshold: float = 0.2
@@ -66,22 +68,17 @@ class DetectorParams:
     """Lead of the best rotation's contrast between the inner locator's expected white and black
     cells over the runner-up's, in the motion-compensated burst under motion."""
     min_still_orientation_score: float = 0.6
-    """The same for the still path's phase-locked image, which shows a still marker sharp: its
-    'L' leads by 1.2-1.3 (346x260 tests, 1280x720 at 10 lux). A camera drifting too slowly for
-    the burst to give a flow (240x180 at 0.25 px/ms) smears that image, and the quadrilateral
-    fitted to it was 11 and 23 cm off on two of five clips, its 'L' leading by 0.33 and 0.25."""
+    """The same for the still path's phase-locked image: a still marker shows sharp there and its
+    'L' leads by more than 1, while a camera drifting too slowly for the burst to give a flow
+    smears it into quadrilaterals centimetres off whose 'L' leads by about 0.3."""
     max_square_flow_px_per_ms: float = 0.3
     min_square_orientation_score: float = 0.5
     """Up to this flow the square fitted to the burst's locator gives the pose itself if it
-    reads the 'L' at least this clearly; faster bursts are pulled onto the ring's edge events
-    first. A slow ring fires little beside the burst's own ON events, and the capture then
-    settles a ring width off: on five 240x180 clips at 0.25 px/ms, squares 2 px from the
-    truth reading the 'L' at 0.5-0.9 were captured 5-7 px off, where it read at 0-0.4. With
-    the square the first locks came at 81-89 ms on four clips and 248 on the fifth, all
-    within 5 cm (81-288 ms without, one 6 cm off and a quarter turn); a square's pose is up to
-    5 cm off, and the tracker had taken it to within 0.1-1.8 cm 5 ms later. The same holds for
-    the square of the last-resort slow path (``detector._detect_slow``), which locked the fifth
-    at 81 ms too."""
+    reads the 'L' at least this clearly (so does the last-resort slow path's square,
+    ``detector._detect_slow``); faster bursts are pulled onto the ring's edge events first. A
+    slow ring fires too little beside the burst's own ON events for that capture, which then
+    settles a ring width off, while the square lies within a few pixels and the tracker
+    refines its pose within milliseconds."""
     min_edge_polarity: float = 0.7
     """Under motion, the ring fitted at the burst must fire with the polarities the flow gives
     its edges (``detector.ring_support``) at least this well: +1.0 at the true pose on the
@@ -91,10 +88,8 @@ class DetectorParams:
     max_unoriented_flow_px_per_ms: float = 1.5
     """A burst that shows no clear 'L' still gives a lock whose frames then read the 'L' this
     way up (``Detection.oriented``), if its ring fit agrees this well with the flow's
-    polarities and the flow is at most this fast. On five 240x180 clips at 1 px/ms that took
-    the first locks from 85-657 ms to 70-153 ms, all right. At 2 px/ms right and wrong captures
-    agree at +0.97 to +1.0 alike: without either limit five 1 s clips there tracked poses more
-    than 5 cm off for 1.4 s, with both for 0.5 s."""
+    polarities and the flow is at most this fast: at 4 px per cell few bursts show the 'L'
+    clearly, while at faster flows right and wrong captures agree with the polarities alike."""
     turn_memory_us: int = 500_000
     """A detection within this much event time of a frame that passed its check takes the
     quarter turn nearest that frame's pose (``detector.nearest_turn``): a hand-held camera
@@ -116,11 +111,22 @@ class TrackerParams:
     """theta_d: events this close to a projected edge join its cluster."""
     alpha: float = 0.3
     """Cluster slots per pixel of edge length."""
+    min_fill: float = 0.25
+    """An edge's latency indicator counts once this share of its slots is filled (noise rarely
+    fills a cluster)."""
     min_update_interval_us: int = 250
     """At most one pose update per interval (the authors' 4 kHz tick)."""
     max_update_interval_us: int = 1000
     """At least one pose update per interval while new events join the clusters, even if no
     indicator fired (the 1 kHz pose-rate target holds under slow motion too)."""
+    min_new_events: int = 16
+    """Events that must have joined the clusters since the last update before a timed one."""
+    velocity_span_us: int = 2000
+    """The edges' image velocity is fitted to the poses of this span (three at least), which
+    averages out the jitter of single poses."""
+    carry_us: int = 1000
+    """An event is carried along its edge's motion for at most this long: under half of
+    ``velocity_span_us``, so that the velocity's jitter and the poses' do not feed each other."""
     capture_us: int = 0
     """Recent events used to pull a detected pose onto the ring's edges (0: off). Off by
     default: with a still camera the only events near the ring are noise, and capture then
@@ -134,18 +140,19 @@ class TrackerParams:
     locator check and the view check instead."""
     fit_judgements: int = 9
     """Consecutive fit ratios (of ``fit_min_events`` each) whose median must fall below
-    ``min_fit_ratio`` to lose the lock. A correct pose under slow motion dips to ~0.45 now and
-    then for one judgement (its edges fire little while the locator keeps blinking nearby),
-    while a wrong lock 11 cm off held at ~0.5: judged one at a time at 0.5, 10 s hand-held
-    clips at 0.25 and 0.5 px/ms lost 9 and 3 correct locks; the median of nine at 0.6 loses 1
-    and 0 of them and still drops that wrong lock as fast (1 px/ms, 30 s: 0.41 s tracked more
-    than 5 cm off, against 0.46 s)."""
+    ``min_fit_ratio`` to lose the lock. A correct pose under slow motion dips for one judgement
+    now and then (its edges fire little while the locator keeps blinking nearby), while a wrong
+    lock stays low: a median over several keeps the one and drops the other as fast."""
     min_fit_speed_px_per_ms: float = 0.0
     """Events near the edges while their image moves slower than this (the median of the
     edges' ends) are not judged (0: judged at any speed). A near-still ring fires little and
-    its band is the blinking locator's: each of six losses of right poses (0.4-3.3 cm off) on a
-    240x180 path at 0.25 px/ms with ``min_fit_ratio`` 0.6 came after nine judgements at
-    0.01-0.19 px/ms reading 0.38-0.76."""
+    its band is the blinking locator's, so its fit ratio says little about the pose."""
+    silent_sweep_px_per_ms: float = 1.0
+    """An outer edge whose image crosses itself this fast fires along its whole length within a
+    millisecond, as its inner edge does (``EdgeTracker.silent_edges``)."""
+    silent_updates: int = 30
+    """Consecutive pose updates that must find a silent swept outer edge to contradict the pose
+    (``EdgeTracker.contradicted``): one that slides off at a flow peak often comes back."""
     max_age_us: int = 30_000
     """Slots older than this are stale and leave the cluster."""
     max_events_per_ms: float | None = 4000.0
@@ -153,14 +160,19 @@ class TrackerParams:
     beyond (None: all). A hand-held 1280x720 camera puts ~37 M events a second near the ring,
     whose ~1000 slots each keep only their newest: 4 per slot and millisecond still refresh
     every slot between pose updates, and the tracker's cost stops growing with the event rate."""
+    still_near_share: float = 0.01
+    still_lookup_every: int = 4
+    """Below this share of the events near the edges (but above none), the triage looks up at
+    most every ``still_lookup_every``-th event in the tracker's tiles: a camera standing still
+    puts under 1% of its events there and its tracker waits for motion, which a quarter of them
+    shows as well as all of them do."""
     huber_px: float = 1.0
     max_iterations: int = 10
 
     def __post_init__(self) -> None:
-        if self.fit_judgements < 1:
-            raise ValueError(
-                f"tracker fit_judgements must be at least 1, got {self.fit_judgements}"
-            )
+        for name in ("fit_judgements", "silent_updates", "still_lookup_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"tracker {name} must be at least 1, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -177,6 +189,10 @@ class DecoderParams:
     lost_after_frames: int = 6
     """Consecutive frames without the inner locator before tracking counts as lost."""
     min_locator_score: float = 0.3
+    sure_contrast: float = 1 / 32
+    """A cell this share of the contrast away from the threshold has full confidence (half of it
+    makes an RS erasure): narrow, since an erasure pays only when a third of the erased bytes
+    are wrong, and under motion a cell an eighth of the contrast away is still mostly right."""
     turn_frames: int = 3
     """Read frames over which the inner locator's 'L' is judged (``min_turn_lead``)."""
     min_turn_lead: float = 0.5
@@ -184,28 +200,25 @@ class DecoderParams:
     minus the best other turn's (``FrameRead.turns``, ring-mean units), below which tracking
     counts as lost. A correct pose reads a lead of ~1.5 (hand-held at 0.5 px/ms); a pose a
     quarter turn off, or one whose ring fit is a ring width too large, reads ~0-0.6 although
-    its ``locator_score`` (medians of the white and black cells) often reads 1 (issue 4)."""
+    its ``locator_score`` (medians of the white and black cells) often reads 1."""
     read_px_per_cell: float | None = 7.0
     """Cells at least twice this wide (pixels, at the lock) are read from one pixel in every
     s x s block: s is the largest stride leaving this many pixels per cell side. A 1280x720
-    camera 0.6 m from an N = 16 marker sees 22 px per cell and ~140 M events a second; reading
-    every third row and column cuts the triage's memory traffic ninefold. At 5.5 px per cell
-    (stride 4 there) a 6 px/ms clip read 34 frames of 60 bit-exact where every second pixel
-    read 44. None: every pixel."""
+    camera 0.6 m from an N = 16 marker sees 22 px per cell, where a stride of 3 cuts the
+    triage's memory traffic ninefold; coarser strides lose bits under fast motion. None: every
+    pixel."""
     late_mark_px_per_cell: float | None = 12.0
     """Cells at least this wide (pixels, at the lock) are also read from each pixel's first burst
     after the middle of the frame's window (``EventTriage.marks_us``). The scan-out switches the
     bottom rows last, and under fast motion the images of the rows above sweep over their
-    pixels first: on two 2 s 1280x720 clips at 6 px/ms (22 px cells) the frames read bit-exact
-    went from 44 and 51 of 57 to 57 and 55, every wrong cell of the 30 having been a white one
-    in the bottom rows. On 4 px cells (240x180 at 1 px/ms) one pixel's extra burst flips a cell:
-    BER rose in three of five clips (0.016 -> 0.029 in one). None: never."""
+    pixels first, so a bottom row's pixel often fires for a neighbour's image before its own
+    switch; on small cells one pixel's extra burst flips a cell. None: never."""
     probation_frames: int | None = 20
     """A lock from a detection under motion must pass a frame check (CRC, framed profiles only)
     within this many frames with the locator seen, or it is dropped: a pose a quarter turn
     off and a ring width too near reads the static white ring as the 'L' and passes every
-    other check, but none of its frames ever verifies (0 of 47 on a 240x180 clip at 1 px/ms,
-    where the right locks first verified at their 4th to 12th frame). None: no probation."""
+    other check, but none of its frames ever verifies, while a right lock's first frames do
+    within a dozen. None: no probation."""
 
     def __post_init__(self) -> None:
         if self.read_px_per_cell is not None and self.read_px_per_cell <= 0:

@@ -13,9 +13,7 @@ A still camera (the grid moved under ``_STILL_CELLS`` in the last few millisecon
 pose per frame and has each cell's inner pixels counted once, so a cell's share is exact. A
 moving one takes a pose every ``DecoderParams.step_us`` and divides by the cell's image area.
 
-Under hand-held motion four things keep the bits (measured on the simulator with the true pose
-injected, the decoder's own floor goes from ~26 % to ~0.2 % BER at 0.5 px/ms, and at 6 px/ms
-on 22 px cells the middle two raise the frames read bit-exact from 36 to 55 of 59):
+Under hand-held motion four things keep the bits:
 
 - the gate narrows to the spread of the locator's own ON bursts (a few hundred microseconds),
   because a black cell that a white neighbour's image sweeps over fires later, not at the switch;
@@ -97,12 +95,6 @@ _SPLIT_RANGE = (0.25, 0.75)
 """The payload threshold is fitted to the payload's own densities (two-means, ``_SPLIT_ROUNDS``
 rounds) and kept within this share of the way from the black to the white reference: a frame
 of nearly one colour has no second cluster to find."""
-_SURE = 1 / 32
-"""A cell this share of the contrast away from the threshold has full confidence (half of it
-makes an RS erasure). Narrow, because an erasure only pays when a third of the erased bytes are
-wrong, and under motion a cell an eighth of the contrast away is still right 14 times in 15:
-with a quarter as the span, half the hand-held frames failed RS on erasures alone (0.5 px/ms:
-30 of 59 frames pass at a quarter, 51 at a thirty-second)."""
 
 
 @dataclass(frozen=True)
@@ -313,7 +305,7 @@ def _two_means(values: np.ndarray, dark: float, bright: float) -> float:
     iterations started at the ``dark`` and ``bright`` references. The payload's own clusters
     move with the conditions that the locator's few known cells do not show: under motion a
     white cell's border pixels fire late and its share drops to ~0.7, while a still cell's
-    pixels all fire (hand-held at 0.5 px/ms: BER 1.8e-2 at the fixed midpoint, 1.2e-2 here)."""
+    pixels all fire."""
     x = np.sort(values, axis=None)
     total = np.r_[0.0, np.cumsum(x)]  # sum of the k darkest values at [k]
     for _ in range(_SPLIT_ROUNDS):
@@ -387,9 +379,8 @@ class CellReader:
     def window(self, m: int) -> tuple[int, int]:
         """Time span of the bursts that frame ``m`` reads: the search gate until one frame's
         bursts timed the clock, then the (narrowed) read gate, so that the frame is read before
-        motion overwrites its pixels' bursts. (Keeping the search gate until three frames fitted
-        the period cost two frames after every lock under fast motion: at 6 px/ms they read
-        41-132 of 256 bits wrong, then 2-14 with the read gate.)"""
+        motion overwrites its pixels' bursts. One frame that timed the clock is enough: under
+        fast motion, waiting for a fit of the period would cost the first frames of a lock."""
         half = abs(self.clock.slope_us) * self.n / 2
         mid = self.clock.mid(m)
         lo, hi = self.gate if self.clock.timed else self._search_gate
@@ -463,8 +454,8 @@ class CellReader:
         read = self._classify(m, density[best], int(count[best].sum()))
         if not self.clock.timed:
             # Before any burst fitted the clock the rows' times are guesses without the scan-out
-            # slope: ``fast``'s first buffered frame, where the locator does not rise, read a
-            # fifth of its cells wrong.
+            # slope: a frame whose locator does not rise (``fast``'s first buffered one) reads
+            # many cells wrong.
             read = replace(read, locator_score=0.0)
         return read
 
@@ -479,12 +470,11 @@ class CellReader:
         the share of its pixels that fired.
 
         A still grid has its pixels counted: at 4-5 px per cell the inner part holds anywhere
-        from 4 to 9 pixel centres, which swings an area-normalised density by a factor of two
-        (the 240 Hz, N = 96 link: BER 7e-3 -> 0). The count is kept until the grid moves by
-        ``_RECOUNT_CELLS``. A moving grid takes the cell's image area instead: its pixels sweep
-        across the cell borders and the tracked pose is a little off, so which pixel centres fall
-        inside is a guess, and the smooth expectation reads better (hand-held at 0.5 px/ms:
-        BER 3.0e-2 counted, 1.8e-2 by area)."""
+        from 4 to 9 pixel centres, which swings an area-normalised density by a factor of two.
+        The count is kept until the grid moves by ``_RECOUNT_CELLS``. A moving grid takes the
+        cell's image area instead: its pixels sweep across the cell borders and the tracked pose
+        is a little off, so which pixel centres fall inside is a guess, and the smooth
+        expectation reads better."""
         n, margin, s = self.n, self.config.decoder.cell_margin, self.stride
         if not still:
             return np.maximum(_cell_areas(to_grid, n, margin) / (s * s), 1.0)
@@ -584,7 +574,8 @@ class CellReader:
         lo, hi = (black_ref + share * contrast for share in _SPLIT_RANGE)
         threshold = min(max(_two_means(payload, black_ref, white_ref), lo), hi)
         bits = (payload > threshold).astype(np.uint8)
-        confidence = np.clip(np.abs(payload - threshold) / (_SURE * contrast), 0.0, 1.0)
+        sure = self.config.decoder.sure_contrast * contrast
+        confidence = np.clip(np.abs(payload - threshold) / sure, 0.0, 1.0)
         score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
         turns = turn_readings(density, self.config.geometry) / max(float(ring.mean()), 1e-9)
         return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)

@@ -41,8 +41,8 @@ events that moving edges fire at every phase, and can place the burst a millisec
 
 Cost: a still camera must not pay for the motion path. The blink map reads a sample of the
 window, the flow is scored on a few thousand OFF events in one compiled pass, and the per-event
-DFTs look their phases up in a table; a megapixel window of ten million events then costs about
-0.3 CPU s, most of it the still path's own per-pixel passes.
+DFTs look their phases up in a table, so that the still path's own per-pixel passes take most
+of an attempt on a megapixel window.
 """
 
 from __future__ import annotations
@@ -78,9 +78,6 @@ from eventocc.receiver.pipeline.tracker import EdgeTracker, _nearest_edge, edge_
 
 TILE_PX = 8
 """Side of the blink map's tiles: a couple of cells at the smallest accepted marker."""
-_MIN_TILE_RATIO = 0.25
-"""|X_k| / X_0 of a tile's signed events for it to blink: ON bursts and OFF bursts half a period
-later add up, swept edges (both polarities at any phase) do not; ~0.5 in the payload."""
 _MAP_SAMPLE = 1_000_000
 """Events of the window that the blink map reads (every k-th): a tile's pulse stands out of a
 sample as well as of all of them, and a megapixel sensor's window holds ten times as many."""
@@ -89,12 +86,12 @@ _BUSY_TILE_SHARE = 0.1
 _CAPTURE_SCALES = (1.0, 0.96, 1.04)
 """Scales of the fitted locator square tried as capture starts: a start about a ring width off
 pulls the ring's inner edge onto the outer one (or the locator's), so neighbours are tried too.
-(Wider scales, with the best 'L' reading choosing among them, locked wrongly more often: the
-largest of more noisy readings passes more wrong fits.)"""
+Only close ones: among more starts the largest of their noisy 'L' readings passes more wrong
+fits."""
 _CAPTURE_HALF_US = 1000
 """Half the span of edge events a capture uses, at most: the span over which the ring moves a
 pixel at the burst's flow, from a quarter to a whole millisecond (a capture fits the smeared
-ring's middle; at 6 px/ms a fixed millisecond smeared it over 12 px)."""
+ring's middle, and a fixed millisecond either side would smear it over 12 px at 6 px/ms)."""
 _CAPTURE_SAMPLE = 30_000
 """Events a capture reads at most (every k-th): a megapixel sensor fires millions around the
 burst, and a pose of eight edges needs far fewer."""
@@ -302,7 +299,8 @@ def blinking_region(parts: list[np.ndarray], config: ReceiverConfig) -> BlinkReg
     ratio = np.hypot(acc[0], acc[1]) / np.maximum(count, 1.0)
     busy = count >= _BUSY_TILE_SHARE * np.percentile(count, 99)
     # Random phases give a ratio of about 1 / sqrt(count): a tile must stand well above that.
-    enough = ratio >= np.maximum(_MIN_TILE_RATIO, 3.0 / np.sqrt(np.maximum(count, 1.0)))
+    least = config.detector.min_tile_ratio
+    enough = ratio >= np.maximum(least, 3.0 / np.sqrt(np.maximum(count, 1.0)))
     blinking = (busy & enough).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(blinking, connectivity=8)
     if n < 2:
@@ -523,10 +521,8 @@ def nearest_turn(found: Detection, prior: np.ndarray, config: ReceiverConfig) ->
     T_cam_world that read a verified frame moments before); not ``oriented`` if that is not
     the turn its 'L' gave, so the frames read through it must confirm it.
 
-    A lock a quarter or half turn off passes the lock's checks now and then (two relocks of
-    five 30 s 240x180 paths at 0.25 px/ms came half a turn off, 36 and 103 ms after the last
-    verified frame, and were tracked 20 cm off for 190 and 40 ms), while a hand-held camera
-    turns a few degrees in that time."""
+    A lock a quarter or half turn off passes the lock's checks now and then, while a hand-held
+    camera turns a few degrees between a verified frame and a relock moments later."""
     turns = [np.roll(found.corners_px, -r, axis=0) for r in range(4)]
     poses = [found.T_cam_world, *(_solve_pnp(c, config) for c in turns[1:])]
     turned = Rotation.from_matrix(np.stack([T[:3, :3] for T in poses]) @ prior[:3, :3].T)
@@ -701,8 +697,7 @@ def ring_support(
     mean agreement (-1..1) of their polarities with those that image ``flow`` gives them
     (``edge_polarities``; edges of unknown polarity left out). A fit a ring width too large lies
     on the edges of the black ring around the white one, whose sides are the other way round:
-    on the virtual camera the truth agrees at +0.9 to +1.0, fits 3 cm or more off mostly at -1.0
-    to +0.7."""
+    the truth agrees at about +1, such fits well below."""
     edges = project_ideal(T, config.camera.K, config.geometry.tracked_edges(config.marker_size_m))
     a, b = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
     dist, edge = _nearest_edge(events["xu"], events["yu"], a, b, _ON_EDGE_PX)  # the tracker's

@@ -36,8 +36,8 @@ from eventocc.receiver.pipeline.config import DetectorParams
 
 MAX_FLOW_PX_PER_MS = 12.0
 """Largest image flow searched: the peaks of a fast sweep on the paper's 1280x720 sensor (its
-6 px/ms clips peak at 9-12). At 2.5 px/ms, the old bound, such a burst stayed smeared over
-tens of pixels and detection waited for the motion to slow down."""
+6 px/ms clips peak at 9-12). A burst faster than the search reaches stays smeared over tens of
+pixels, and detection waits for the motion to slow down."""
 _FLOW_LEVELS = (
     (1.5, 8, 12.0, 5_000),
     (0.5, 2, 4.0, 5_000),
@@ -53,16 +53,14 @@ _MIN_GAIN = 1.05
 """A flow must sharpen the image by this factor over zero flow, or the camera counts as still."""
 _GAIN_BIN_PX = 2.0
 """Bin of that comparison: in 1 px bins a still display's OFF events can line up better at some
-flow of 1-2 px/ms (1.10-1.14x on the 1280x720 paper N = 16 clips), in 2 px bins they do not
-(<= 1.0x), while hand-held motion at 0.5-1 px/ms still gains 1.8x or more."""
+flow of 1-2 px/ms than at none, in 2 px bins they do not, while hand-held motion still gains
+far more than ``_MIN_GAIN``."""
 _SLOW_STEP = 0.05
 _SLOW_SAMPLE = 5_000
 """``slow_flow``'s grid step (px/ms) and the OFF events it reads at most (every k-th). A camera
 drifting a fraction of a pixel per ms fires few edge events beside the display's OFF tail, whose
 times follow the scan-out's rows, and some flow of 1-3 px/ms often lines those up better than
-the true one does: on five 240x180 clips at 0.25 px/ms, 17 of 70 detection attempts found one
-more than 0.5 px/ms off. Within 0.3 px/ms, ``slow_flow`` lay a median 0.05 px/ms from the true
-flow there (90th percentile 0.14, at most 0.31)."""
+the true one does; a search within a fraction of a pixel per ms is not misled so."""
 HALF_WINDOW = 0.2
 """Half-width of a burst window in blink periods (paper Sec. IV-B)."""
 _SQUARE_SHIFTS_CELLS = np.arange(-1.5, 1.6, 0.25)
@@ -392,8 +390,8 @@ def _square_contrast(
     lit: np.ndarray, h: np.ndarray, inner: np.ndarray, outer: np.ndarray
 ) -> np.ndarray:
     """Inner minus outer band brightness of squares h = (cx, cy, side, turn), (k, 4): ten
-    thousand hypotheses of two hundred samples each, which numpy spent 0.2 s of temporaries
-    on."""
+    thousand hypotheses of two hundred samples each, compiled since numpy's temporaries for them
+    cost far more than the arithmetic."""
     out = np.empty(h.shape[0])
     for k in range(h.shape[0]):
         c, s = math.cos(h[k, 3]), math.sin(h[k, 3])

@@ -162,7 +162,11 @@ class Receiver:
         """While tracking, the events before this time have been processed."""
         # Allocated once (with the camera's undistortion table), reset at every lock.
         self._triage = EventTriage(
-            cam.undistort_table, config.refresh_us / 2, config.data_every == 1
+            cam.undistort_table,
+            config.refresh_us / 2,
+            config.data_every == 1,
+            still_share=config.tracker.still_near_share,
+            still_every=config.tracker.still_lookup_every,
         )
         self._next_attempt_us: int | None = None
         self._pending: Detection | None = None
@@ -330,11 +334,10 @@ class Receiver:
     def _postpone(self, found: Detection, until: int) -> list[Output]:
         """Lock on ``found`` again at ``until``, when its second frame is whole. Under motion
         the frame of the burst itself reads poorly even at a right pose (the pose before the
-        burst is not known, and the scan-out shows half the frame before it): on five 240x180
-        clips at 1 px/ms right detections read it at 0.03-0.23 and the next frame at 0.74-1.0,
-        so a lock judged on the first alone was refused (and a quarter-turned one once passed
-        on it at 0.6). The burst's frame only times the clock (``_decode``), so nothing of this
-        attempt reached the stream decoder; the next attempt reads it again, the same."""
+        burst is not known, and the scan-out shows half the frame before it), so a lock judged
+        on it alone would be refused, and a wrong one might pass. The burst's frame only times
+        the clock (``_decode``), so nothing of this attempt reached the stream decoder; the
+        next attempt reads it again, the same."""
         self._end_track()
         self._pending, self._next_attempt_us = found, until
         return []
@@ -347,8 +350,7 @@ class Receiver:
         the right way up if the burst did not show it (``Detection.oriented``), and keep the
         tracker on the ring's edges; a still lock only needs the locator to show. A frame that
         passes its check settles it, as only a right pose reads one: a slow ring's few events
-        can leave the fit ratio low at a right pose (a 240x180 path at 0.25 px/ms was refused
-        at 81 ms on 51% with its frame verified, and locked at 151)."""
+        can leave the fit ratio low at a right pose."""
         q = self.config.detector
         if found.moving:  # the burst's own frame reads poorly (``_postpone``)
             frames = [f for f in frames if f.read.index > 0]

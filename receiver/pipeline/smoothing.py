@@ -5,10 +5,9 @@ noisy in one direction above all: a small marker's tilt against its sideways shi
 moves its image. On a 240x180 camera 0.6 m from the 27.2 cm marker that noise is ~0.75 cm
 sideways, and it is nearly independent from one millisecond to the next (correlation 0.5 at
 1 ms, 0.2 at 2 ms), while the camera moves smoothly. Each output pose is therefore a straight
-line fitted to the updates within ``half_us`` of it, evaluated at its time: at +-5 ms that
-halved the ATE of 4 s hand-held clips at 0.5 and 1 px/ms (1.13 -> 0.56 and 1.08 -> 0.50 cm,
-RPE over 10 ms 1.5 -> 0.6-0.8 cm). Wider windows lag the hand's acceleration (+-10 ms was worse
-at 1 px/ms). The price: a pose is published once the updates ``half_us`` after it have come.
+line fitted to the updates within ``half_us`` of it, evaluated at its time: a few milliseconds
+either side average the noise out, while wider windows lag the hand's acceleration. The
+price: a pose is published once the updates ``half_us`` after it have come.
 
 The fit is done on the 3x4 matrices and the rotation part is projected back onto the rotations
 (the nearest in the Frobenius norm): within a few milliseconds the rotations differ by a degree

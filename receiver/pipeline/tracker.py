@@ -11,8 +11,8 @@ now beyond the gate or too old.
 Unlike the paper's static edges, these move between updates at the image velocity fitted to the
 latest poses: an event is carried back along its edge's motion to the time the edges hold
 before it is gated and binned, and at an update the clusters are carried forward to the
-update's time. Without this the pose lagged the events by ~0.2 ms and, at flows over
-~8 px/ms, slid off the ring.
+update's time. Static edges leave the pose behind the events, and under fast motion off the
+ring.
 
 Unlike the authors' tracker, this one also says when it is wrong: events in a band one ring wide
 around the edges should lie on the edges; when most of them do not, the pose has slipped (see
@@ -32,45 +32,20 @@ import numpy as np
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.pose import project_ideal, refine_pose
 
-_MIN_FILL = 0.25
-"""An edge's indicator counts only once this share of its bins holds events (noise alone rarely
-fills a cluster)."""
 _MIN_EDGES = 4
 """Edges with enough fresh events for a pose solve: four lines fix a plane's pose."""
-_SWEEP_PX_PER_US = 1e-3
-"""An outer edge of the ring whose image crosses itself this fast (1 px/ms) fires events along
-its whole length within a millisecond, as its inner edge does (``EdgeTracker.silent_edges``)."""
-_SILENT_UPDATES = 30
-"""Consecutive pose updates (~30 ms under motion) that must find a silent swept outer edge before
-the pose counts as contradicted (``EdgeTracker.contradicted``). A pose that slides off at a flow
-peak often comes back: at 10, the comparison's 6 px/ms `robust` clip lost such a pose and took
-190 ms to lock again (68% of its data frames read bit-exact); replayed at 30 it keeps the pose
-(48 of 60), and the wrong lock of its `paper` clip still fails its verification."""
 _CAPTURE_GATES = (2.0, 1.0, 0.0)
 """Gates of the capture passes in ring widths (0: the tracking gates). Each event counts for its
 nearest edge only, so the ring's two sides stay apart, and never from deeper than ``_LOCATOR_GAP``
 inside the inner edges, where the blinking inner locator begins one ring further in."""
 _LOCATOR_GAP = 0.6
 _CAPTURE_MIN_EVENTS = 50
-_FORCE_MIN_NEW = 16
-"""Events that must have joined the clusters before a timed (not indicator-driven) update."""
-_VELOCITY_SPAN_US = 2000
-"""The edges' image velocity is fitted to the poses of this recent span, and at least to the
-latest three (under motion the updates come every 0.25-1 ms: a pose's ~0.3 px of jitter then
-moves the velocity by ~0.2 px/ms)."""
 _BLOCK = 64
 """Events whose distances to the edges ``_assign`` computes at a time."""
 _BIT_INDEX = np.zeros(37, np.int64)
 _BIT_INDEX[[(1 << e) % 37 for e in range(36)]] = range(36)
 """Index of the single set bit of ``1 << e`` at ``(1 << e) % 37`` (the remainders of the
 powers of two below 2**36 differ): an edge mask's lowest edge without a loop over the edges."""
-_CARRY_US = 1000
-"""An event is carried along its edge's motion for at most this long. A slot can hold an event
-for ``max_age_us`` (30 ms), and carried that long, the velocity's jitter would move it pixels:
-each pose, solved from such events, would then jitter more than the velocity fitted to it, and
-the two feed each other (a 240x180 camera at 0.5 px/ms lost its lock six times in 6 s). Held
-under half the velocity's span, the loop damps. Under fast motion an event carried this far has
-left its gate anyway."""
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -238,18 +213,20 @@ def _assign(
     due_us,
     force_us,
     min_fill,
+    min_new,
+    carry_us,
 ):
     """Add events ``start..`` to the clusters and count, in ``fit``, events in the band around
     the edges, those of them on an edge, and events on an edge since the last update. The edges
     a -> b hold at ``ref_us`` and move at the ends' velocities ``va``, ``vb`` (px/us): each event
-    is carried back to ``ref_us`` (``_CARRY_US`` at most) along an edge's motion before it is
+    is carried back to ``ref_us`` (``carry_us`` at most) along an edge's motion before it is
     measured and binned. Stop after the first event that makes more than one indicator exceed
-    half its gate (at or after ``due_us``), or at ``force_us`` once new events joined. Returns
-    (index to resume from, whether it stopped)."""
+    half its gate (at or after ``due_us``), or at ``force_us`` once ``min_new`` new events
+    joined. Returns (index to resume from, whether it stopped)."""
     # In blocks of events: first the distance of each event to each edge, edge by edge over
     # the block (no branch, contiguous: the compiler vectorises it), then the binning in event
-    # order. Event by event, the eight distances' arithmetic and branches took two thirds of the
-    # time and ruling edges out first saved little; the blocks took 61 -> 40 ns per event.
+    # order. Event by event, the eight distances' arithmetic and branches dominate the cost,
+    # and ruling edges out first saves little.
     m = a.shape[0]
     ax, ay = a[:, 0].copy(), a[:, 1].copy()
     dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
@@ -269,7 +246,7 @@ def _assign(
         nb = min(_BLOCK, t.shape[0] - b0)
         for j in range(nb):
             x[j], y[j] = xu[b0 + j], yu[b0 + j]
-            dt[j] = min(max(t[b0 + j] - ref_us, -_CARRY_US), _CARRY_US)
+            dt[j] = min(max(t[b0 + j] - ref_us, -carry_us), carry_us)
         for e in range(m):  # the events as the edge's motion places them at ``ref_us``
             for j in range(nb):
                 w = _along(x[j], y[j], ax[e], ay[e], dx[e], dy[e], inv[e])
@@ -278,8 +255,7 @@ def _assign(
                 dist[e, j], along[e, j] = _to_segment(px, py, ax[e], ay[e], dx[e], dy[e], inv[e])
                 qx[e, j], qy[e, j] = px, py
         # Which edges each event is on (bit e), and whether it is in the band: also edge by
-        # edge, since tested per event the eight gates' branches mispredicted (the whole
-        # function took 44 ns per event then, 32 now).
+        # edge, since tested per event the eight gates' branches mispredict.
         on_edges[:nb], near[:nb] = 0, False
         for e in range(m):
             for j in range(nb):
@@ -294,8 +270,8 @@ def _assign(
                 e = _BIT_INDEX[lowest % 37]
                 d = dist[e, j]
                 # Into bin s, replacing its older event in the count and distance sum. Written
-                # out here: as a helper taking the six arrays, numba kept a dozen atomic
-                # reference counts per call, which made this loop 2.5x slower.
+                # out here: a helper taking the six arrays makes numba keep a dozen atomic
+                # reference counts per call.
                 s = min(int(along[e, j] * cap[e]), cap[e] - 1)
                 if st[e, s] >= 0:
                     sum_d[e] -= sd[e, s]
@@ -311,7 +287,7 @@ def _assign(
                 fit[0] += 1
                 fit[1] += on
             fit[2] += on
-            if t[i] >= force_us and fit[2] >= _FORCE_MIN_NEW:
+            if t[i] >= force_us and fit[2] >= min_new:
                 return i + 1, True
             if t[i] >= due_us and n_late > 1:
                 return i + 1, True
@@ -393,16 +369,16 @@ def _fresh_points(sx, sy, st, since_us):
 
 
 @numba.njit(cache=True, nogil=True)
-def _carry(sx, sy, st, cap, va, vb, ref_us, now_us):
+def _carry(sx, sy, st, cap, va, vb, ref_us, now_us, carry_us):
     """Carry the slots' events, placed as of ``ref_us``, forward to ``now_us`` along the edges'
-    motion (an event ``_CARRY_US`` from its own time at most), in place; a slot's place along
+    motion (an event ``carry_us`` from its own time at most), in place; a slot's place along
     its edge is its bin's centre."""
     for e in range(st.shape[0]):
         for s in range(cap[e]):
             if st[e, s] < 0:
                 continue
-            dt = min(max(now_us - st[e, s], -_CARRY_US), _CARRY_US)
-            dt -= min(max(ref_us - st[e, s], -_CARRY_US), _CARRY_US)
+            dt = min(max(now_us - st[e, s], -carry_us), carry_us)
+            dt -= min(max(ref_us - st[e, s], -carry_us), carry_us)
             w = (s + 0.5) / cap[e]
             sx[e, s] += (va[e, 0] + w * (vb[e, 0] - va[e, 0])) * dt
             sy[e, s] += (va[e, 1] + w * (vb[e, 1] - va[e, 1])) * dt
@@ -411,7 +387,8 @@ def _carry(sx, sy, st, cap, va, vb, ref_us, now_us):
 @numba.njit(cache=True, nogil=True)
 def _median_speed(va, vb):
     """Median over the edges of the speed of their middles, moving at ``(va + vb) / 2``
-    (compiled: the tracker asks after every push, where numpy took 14 us)."""
+    (compiled: the tracker asks after every push, and numpy's per-call overhead would
+    dominate)."""
     speed = np.empty(va.shape[0])
     for e in range(va.shape[0]):
         speed[e] = 0.5 * np.hypot(va[e, 0] + vb[e, 0], va[e, 1] + vb[e, 1])
@@ -419,17 +396,17 @@ def _median_speed(va, vb):
 
 
 @numba.njit(cache=True, nogil=True)
-def _recent_velocity(times, ends, n, now_us, a, b):
+def _recent_velocity(times, ends, n, now_us, a, b, span_us):
     """Append the projected ends ``a``, ``b`` of the edges at ``now_us`` to the first ``n`` of
     the recent poses' ``times`` (k,) and ends (k, 16, 2), dropping the oldest beyond
-    ``_VELOCITY_SPAN_US`` while more than three remain; return their new count and, from three
+    ``span_us`` while more than three remain; return their new count and, from three
     on, the least-squares velocity (px/us) of each end over them (a line per coordinate)."""
     m = a.shape[0]
     times[n] = now_us
     ends[n, :m], ends[n, m:] = a, b
     n += 1
     drop = 0
-    while n - drop > 3 and now_us - times[drop] > _VELOCITY_SPAN_US:
+    while n - drop > 3 and now_us - times[drop] > span_us:
         drop += 1
     if drop:
         n -= drop
@@ -483,7 +460,7 @@ class EdgeTracker:
         self._fit = np.zeros(3, np.int64)
         self.fit_history: deque[float] = deque(maxlen=config.tracker.fit_judgements)
         """The latest ``fit_judgements`` fit ratios, oldest first."""
-        self.silent_history: deque[int] = deque(maxlen=_SILENT_UPDATES)
+        self.silent_history: deque[int] = deque(maxlen=config.tracker.silent_updates)
         """``silent_edges`` at the latest pose updates, oldest first."""
         self._rebin(T_cam_world, now_us)
 
@@ -505,7 +482,7 @@ class EdgeTracker:
 
     @property
     def contradicted(self) -> bool:
-        """Whether each of the last ``_SILENT_UPDATES`` pose updates found a silent swept outer
+        """Whether each of the last ``silent_updates`` pose updates found a silent swept outer
         edge (``silent_edges``)."""
         history = self.silent_history
         return len(history) == history.maxlen and all(history)
@@ -520,20 +497,19 @@ class EdgeTracker:
         history = self.fit_history
         if len(history) < history.maxlen:
             return None
-        ratio = statistics.median(history)  # after every push: numpy's costs 40x more
+        ratio = statistics.median(history)  # after every push: cheaper than numpy's
         if ratio < self.config.tracker.min_fit_ratio:
             return f"only {ratio:.0%} of the events near the ring lie on its edges"
         return None
 
     def silent_edges(self, supported: np.ndarray) -> int:
         """Outer edges that hold no fresh events (``supported``: per edge) although the image
-        moves them across themselves faster than ``_SWEEP_PX_PER_US`` inside the view and the
-        inner edge beside them holds fresh ones. A correct pose has none: the white ring's two
-        edges sweep over the same motion. A pose that fits the ring's two near sides and, on
-        the other two, takes the screen's border for the ring's inner edge (the same contrast:
-        bright outside, dark inside) has two: its outer edges lie on the wall around the
-        screen, where nothing fires (a 6 px/ms clip tracked such a pose 8 cm off for a second,
-        75-97% of its band's events on its edges)."""
+        moves them across themselves faster than ``silent_sweep_px_per_ms`` inside the view and
+        the inner edge beside them holds fresh ones. A correct pose has none: the white ring's
+        two edges sweep over the same motion. A pose that fits the ring's two near sides and,
+        on the other two, takes the screen's border for the ring's inner edge (the same
+        contrast: bright outside, dark inside) has two: its outer edges lie on the wall around
+        the screen, where nothing fires, while most of its band's events lie on its edges."""
         silent = ~supported[:4] & supported[4:]
         if not silent.any():  # a tracked pose's usual case: skip the geometry (every update)
             return 0
@@ -542,7 +518,8 @@ class EdgeTracker:
         speed = np.abs(np.sum(velocity * _unit_normals(a, b), axis=1))
         ends, cam = np.stack([a, b], 1), self.config.camera
         inside = np.all((ends >= 0) & (ends < (cam.width, cam.height)), axis=(1, 2))
-        return int(np.count_nonzero(silent & (speed > _SWEEP_PX_PER_US) & inside))
+        sweep = self.config.tracker.silent_sweep_px_per_ms / 1e3  # px/us, as the velocity
+        return int(np.count_nonzero(silent & (speed > sweep) & inside))
 
     # --- geometry of the current pose ----------------------------------------------------------
     def _project_edges(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -647,7 +624,9 @@ class EdgeTracker:
                 self._fit,
                 self.last_update_us + q.min_update_interval_us,
                 self.last_update_us + q.max_update_interval_us,
-                _MIN_FILL,
+                q.min_fill,
+                q.min_new_events,
+                q.carry_us,
             )
             now = int(t[stop - 1])
             if due:
@@ -667,24 +646,19 @@ class EdgeTracker:
         """Re-solve the pose, unless too few edges hold fresh events (sensor noise alone must not
         move a camera that stands still)."""
         sx, sy, st = self._slots[:3]
+        q = self.config.tracker
         self.last_update_us = now_us
         self._fit[2] = 0
-        since = max(0, now_us - self.config.tracker.max_age_us)
-        supported = _supported_edges(st, since, self._cap, _MIN_FILL)
+        since = max(0, now_us - q.max_age_us)
+        supported = _supported_edges(st, since, self._cap, q.min_fill)
         self.silent_history.append(self.silent_edges(supported))
         if np.count_nonzero(supported) < _MIN_EDGES:
             self._age_out(now_us)
             return None
-        _carry(sx, sy, st, self._cap, self._va, self._vb, self._ref_us, now_us)
+        _carry(sx, sy, st, self._cap, self._va, self._vb, self._ref_us, now_us, q.carry_us)
         pts, edge = _fresh_points(sx, sy, st, since)
         T, cost = refine_pose(
-            self.T_cam_world,
-            self.K,
-            pts,
-            edge,
-            self.edges_world,
-            self.config.tracker.huber_px,
-            self.config.tracker.max_iterations,
+            self.T_cam_world, self.K, pts, edge, self.edges_world, q.huber_px, q.max_iterations
         )
         self.T_cam_world = T
         self._rebin(T, now_us)
@@ -692,13 +666,19 @@ class EdgeTracker:
         return TrackUpdate(now_us, T, cost, len(edge))
 
     def _fit_velocity(self, now_us: int) -> None:
-        """Fit the edges' ends' image velocity to the poses of the last ``_VELOCITY_SPAN_US``,
+        """Fit the edges' ends' image velocity to the poses of the last ``velocity_span_us``,
         or the last three (least squares, a line per coordinate); until three, keep the old."""
         if self._n_recent == len(self._recent_t):  # updates denser than ever: grow
             self._recent_t = np.concatenate([self._recent_t, np.empty_like(self._recent_t)])
             self._recent_ends = np.concatenate([self._recent_ends, self._recent_ends])
         self._n_recent, v = _recent_velocity(
-            self._recent_t, self._recent_ends, self._n_recent, now_us, self._a, self._b
+            self._recent_t,
+            self._recent_ends,
+            self._n_recent,
+            now_us,
+            self._a,
+            self._b,
+            self.config.tracker.velocity_span_us,
         )
         if self._n_recent >= 3:
             self._va, self._vb = v[:8], v[8:]

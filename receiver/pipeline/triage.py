@@ -12,17 +12,14 @@ A frame's scan-out takes most of a refresh, and at 6 px/ms the images of the row
 switched sweep over the pixels of the rows still to come: a bottom row's pixel often fires for a
 neighbour before its own switch, and again after it. So the first burst is kept from two times
 on (``marks_us``): the frame window's start, for the rows that switch early, and a later one
-for the rest, where cells are large enough (``DecoderParams.late_mark_px_per_cell`` says
-what it changed).
+for the rest, where cells are large enough (``DecoderParams.late_mark_px_per_cell``).
 
 A burst is a run of same-polarity events with no gap longer than ``gap_us`` and no event of the
 other polarity: a cell switching fires its pixels several times within the display's response,
 and the same pixel cannot switch the same way again for two refreshes (or a data frame and a
 blank one), unless motion sweeps an edge's image over it. At 6 px/ms the scan-out spreads a
 frame's bursts over ~10 ms, in which a white cell's pixel is often relit once or twice by its
-neighbours' images: the first burst is the display's switch, the latest one is not (the frames
-read bit-exact through the true pose of a 6 px/ms clip went from 36 to 55 of 59 with the first
-burst kept and bursts ended by the other polarity).
+neighbours' images: the first burst is the display's switch, the latest one is not.
 
 Cells much larger than the decoder needs (a 1280x720 camera close to an N = 16 marker sees 22 px
 per cell and ~140 M events a second) are read from a coarser surface: only the pixels on every
@@ -40,6 +37,7 @@ import numba
 import numpy as np
 
 from eventocc.receiver.pipeline.buffer import EventColumns, ideal_coordinates
+from eventocc.receiver.pipeline.config import TrackerParams
 
 TILE = 4
 """Side of the tracker-mask tiles in pixels, a power of two (tile = pixel >> _SHIFT)."""
@@ -56,17 +54,9 @@ burst's start from each of the two marks on (16 bytes: an entry never straddles 
 
 _RARE_SHARE = 0.05
 """Below this share of events near the edges, the dense pass tests each event's tile with a
-branch, which then predicts well (a still 1280x720 camera, ~1e-4 near: its triage took 0.31 ->
-0.26 CPU s on a 0.4 s N = 80 clip); above, without one (240x180 under motion, 0.5-0.95 near:
-the branch cost its triage 7%)."""
-_STILL_SHARE = 0.01
-_STILL_EVERY = 4
-"""Below this share of events near the edges (but above none), only every ``_STILL_EVERY``-th
-event at least is looked up in the tiles. The camera then stands still (1280x720: at most
-0.005 still, 0.05-0.3 hand-held; 240x180 sees the blinking cells near the edges, 0.5-0.9) and
-the tracker waits for motion, which a quarter of the events near the edges shows as well as
-all of them do: the still N = 80 1280x720 camera's triage took a tenth to a seventh less
-time (two in-receiver A/Bs over 1 s of its stream)."""
+branch, which then predicts well (a still camera); above, it counts without one (a moving
+camera, or a small sensor that sees the blinking cells near the edges). Either way it picks
+the same events."""
 _OFF_GRID = -(1 << 30)
 _BLOCK = 1024
 """Events whose on-grid ones are gathered, and whose near-edge ones are copied out, at a time
@@ -84,7 +74,7 @@ def _burst(pixels, e, at, epoch, gap_us, mark, mark2):
     toggling cell reverses its pixels' polarity, while an event of the same polarity long after
     the last (a pixel's slow settling towards black, a redraw of the same level) is no switch.
     (The two surfaces' cases are written apart, each with its polarity a constant where it can
-    be: a fifth faster than with the polarity an index throughout.)"""
+    be: an index throughout makes the pass slower.)"""
     ti = np.int32(e.t - epoch)
     if pixels.shape[1] == 1:
         if e.p > 0:
@@ -150,17 +140,17 @@ def _triage(
     continuing another's thinning). ``rare``: few events lie on the marked tiles
     (``_RARE_SHARE``).
 
-    ``events`` is the structured chunk itself: numba reads each record's fields in one go, which
-    runs a third faster than four strided field views. With a stride, whether an event lies on
-    the grid is a coin toss that a branch would mispredict ~2 ns at a time: each block's
-    on-grid events are first gathered without one. Each block's near-edge records are copied
-    out while they are in the L1 cache, rather than after the whole chunk (as the dense pass
-    does, whose picks are few): the hand-held 1280x720 stream's triage took 2-7% less time."""
+    ``events`` is the structured chunk itself: numba reads each record's fields in one go,
+    faster than four strided field views. With a stride, whether an event lies on the grid is a
+    coin toss that a branch would mispredict ~2 ns at a time: each block's on-grid events are
+    first gathered without one. Each block's near-edge records are copied out while they are in
+    the L1 cache, rather than after the whole chunk (as the dense pass does, whose picks are
+    few)."""
     n = events.shape[0]
     size = -(-n // every)  # pages are touched only as far as written
     t, x, y = np.empty(size, np.int64), np.empty(size, np.uint16), np.empty(size, np.uint16)
     p = np.empty(size, np.int8)
-    if dense:  # the bursts in one pass (blocks measured slower here, and so did the tables)
+    if dense:  # the bursts in one pass (blocks, and the grid's tables, are slower here)
         width = grid_x.shape[0]
         for i in range(n):
             e = events[i]
@@ -288,8 +278,16 @@ class EventTriage:
     """Per-pixel burst surfaces for the decoder and the near-edge events for the tracker."""
 
     def __init__(
-        self, undistort_table: np.ndarray, gap_us: float, both_polarities: bool, epoch_us: int = 0
+        self,
+        undistort_table: np.ndarray,
+        gap_us: float,
+        both_polarities: bool,
+        epoch_us: int = 0,
+        still_share: float = TrackerParams.still_near_share,
+        still_every: int = TrackerParams.still_lookup_every,
     ) -> None:
+        """``still_share``, ``still_every``: the thinning of the tile lookups while the camera
+        stands still (``TrackerParams.still_near_share``)."""
         self._table = np.ascontiguousarray(undistort_table, np.float32)
         height, width = self._table.shape[:2]
         self._polarities = 2 if both_polarities else 1
@@ -309,6 +307,7 @@ class EventTriage:
         started newer ones since (a pixel's latest burst alone keeps only the last time an
         edge's image relit it)."""
         self.gap_us = int(gap_us)
+        self._still = (still_share, still_every)
         self._tiles = np.zeros((-(-height // TILE), -(-width // TILE)), np.bool_)
         self._edges: np.ndarray | None = None
         # The tiles are raw pixels, the edges ideal ones: search this many tiles further.
@@ -353,8 +352,8 @@ class EventTriage:
         most = n if per_ms is None else max(int(per_ms * (t_last - t_first + 1) / 1000), 1)
         # Only every k-th event is looked up in the tiles, k from the share that lay near the
         # edges last time: at 140 M events a second the tracker keeps one near event in ten.
-        share = self._near_share
-        every = max(-int(-n * share // most), _STILL_EVERY if 0 < share < _STILL_SHARE else 1)
+        share, (still_share, still_every) = self._near_share, self._still
+        every = max(-int(-n * share // most), still_every if 0 < share < still_share else 1)
         epoch = self.epoch_us
         pixels = self.surface.reshape(-1, *self.surface.shape[2:])
         grid = (*self._grid, self.stride == 1)
