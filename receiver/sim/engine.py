@@ -17,6 +17,7 @@ from eventocc.receiver.sim.display import DisplayTimeline
 from eventocc.receiver.sim.motion import image_box
 from eventocc.receiver.sim.moving import MovingRenderer
 from eventocc.receiver.sim.optics import centre_rays, rays_to_plane, sample_rays
+from eventocc.receiver.sim.readout import Readout
 from eventocc.receiver.sim.render import StaticRenderer
 from eventocc.receiver.sim.scene import Scene
 from eventocc.receiver.sim.sensor import BackgroundNoise, PixelArray, background_rates, to_events
@@ -31,6 +32,10 @@ class Recording:
         self.duration_us = duration_us
         self.chunk_us = chunk_us
         self.trajectory = scene.motion.trajectory(scene.rig)
+        self.made = 0
+        """Events the pixels made in the latest run, before the readout stages."""
+        self.readout: Readout | None = None
+        """The latest run's readout stages, with what they delayed and dropped."""
         limit = getattr(self.trajectory, "duration_us", None)
         if limit is not None and duration_us > limit:
             raise ValueError(
@@ -70,9 +75,12 @@ def simulate(scene: Scene, duration_s: float, chunk_us: int = 10_000) -> Recordi
 
 def _run(rec: Recording) -> Iterator[np.ndarray]:
     scene, sensor, cam = rec.scene, rec.scene.sensor, rec.scene.camera
-    rng_pixels, rng_noise, rng_delay = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(scene.seed).spawn(3)
+    # Spawned children do not depend on how many are spawned: the first three streams are
+    # those of a scene without readout stages.
+    rng_pixels, rng_noise, rng_delay, rng_readout = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(scene.seed).spawn(4)
     )
+    rec.readout = readout = Readout(sensor, rng_readout)
     pixels = PixelArray.draw(sensor, cam.width * cam.height, rng_pixels)
     timeline = DisplayTimeline(scene.encoder, scene.display, scene.start_refresh)
     renderer = _renderer(scene, rec, timeline, pixels)
@@ -89,7 +97,11 @@ def _run(rec: Recording) -> Iterator[np.ndarray]:
         events = to_events(t, i, p, cam.width, sensor, rng_delay, pending)
         cut = int(np.searchsorted(events["t"], t1))
         pending = events[cut:] if t1 < rec.duration_us else empty_events()
-        yield np.ascontiguousarray(events[:cut], dtype=EVENT_DTYPE)
+        out = events[:cut]
+        rec.made += len(out)
+        if readout.active:
+            out = readout.apply(out)
+        yield np.ascontiguousarray(out, dtype=EVENT_DTYPE)
 
 
 def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: PixelArray):
@@ -111,6 +123,7 @@ def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: P
         pixels.threshold_on,
         pixels.threshold_off,
         sensor.refractory_us,
+        sensor.photoreceptor_hz,
     )
 
 

@@ -674,6 +674,11 @@ class MovingRenderer:
                 "backlight PWM is simulated for still cameras only; give the "
                 "display pwm_hz=None to simulate a moving camera"
             )
+        if scene.sensor.photoreceptor_hz > 0:
+            raise ValueError(
+                "the photoreceptor low-pass is simulated for still cameras only; give the "
+                "sensor photoreceptor_hz=0 to simulate a moving camera"
+            )
         self._geo = plane_geometry(lay)
         self._rad = (rad.screen_ambient, rad.screen_black, rad.wall, rad.dark)
         self.outline = lay.screen_corners()

@@ -28,10 +28,12 @@ from eventocc.receiver.sim.display import DisplayTimeline, ScreenLayout
 from eventocc.receiver.sim.sensor import (
     LAST,
     LEVEL,
+    PHOTORECEPTOR_REF_NITS,
     REF,
     EventBuffer,
     cross_exponential,
     cross_linear,
+    cross_relaxation,
     pixel_state,
 )
 
@@ -41,6 +43,11 @@ _LADDER_START = 1e-3
 _LADDER_RATIO = 1.5
 _SETTLED = 12.0
 """Time constants after which a transition counts as finished."""
+_FILTER_FIRST = 0.1
+"""First step of the photoreceptor's ladder as a fraction of the faster time constant."""
+_FILTER_RATIO = 1.3
+_FILTER_SETTLED = 1e-4
+"""A filtered level this close (ln units) to its pixel's light is at rest."""
 SETTLED_CONTRAST = 1e-3
 """A cell whose level at a switch is within this fraction of its new target does not switch:
 what is left of its transition moves a pixel's log irradiance by less than a tenth of the
@@ -167,6 +174,7 @@ def _static_window(
     state,
     refractory,
     out,
+    photo_k=0.0,
 ):
     """Events of the still-camera pixels ``j_start ..`` from their next display switch on, one
     whole refresh at a time, for every switch before ``t1`` (events may run up to a refresh
@@ -175,7 +183,8 @@ def _static_window(
     a refresh in which none of a pixel's cells moves is rendered once, which puts its level
     exactly on their light (a transition whose tail ends on a threshold fires there, as when
     every refresh is rendered), and skipped after that (``at_rest``). Returns (next pixel,
-    count): stops early, with that pixel untouched, when the output is full."""
+    count): stops early, with that pixel untouched, when the output is full. ``photo_k`` > 0:
+    the photoreceptor low-pass (``filtered_segment``; no backlight PWM)."""
     n = 0
     nk = target.shape[0]
     for j in range(j_start, pix_v.shape[0]):
@@ -213,6 +222,14 @@ def _static_window(
                         b_rise += w * (lum_start - lum_end)
                 elif tau_fall > 0:
                     b_fall += w * (lum_start - lum_end)
+            if photo_k > 0.0:
+                n = filtered_segment(
+                    ts, period, a, b_rise, tau_rise, b_fall, tau_fall, photo_k, j, state,
+                    refractory, out, n,
+                )  # fmt: skip
+                if at_rest[j] and abs(state[LEVEL, j] - math.log(a)) > _FILTER_SETTLED:
+                    at_rest[j] = False  # the photoreceptor still moves towards the light
+                continue
             n = render_segment(
                 ts,
                 0.0,
@@ -234,6 +251,54 @@ def _static_window(
             state[REF, j], state[LAST, j], state[LEVEL, j], next_switch[j], at_rest[j] = saved
             return j, n_before
     return pix_v.shape[0], n
+
+
+@numba.njit(cache=True)
+def filtered_segment(
+    t0, ub, a, b_rise, tau_rise, b_fall, tau_fall, photo_k, j, state, refractory, out, n
+):
+    """Events of pixel ``j`` over [t0, t0 + ub] after a display switch at ``t0`` when its
+    photoreceptor low-passes the log irradiance ``L = ln(a + b_rise exp(-u/tau_rise) + b_fall
+    exp(-u/tau_fall))`` (v2e): ``dy/du = (L - y) / tau_p`` with ``tau_p = photo_k / exp(L)``
+    (the cut-off scales with the light), ``y`` starting at the pixel's level. While the light
+    moves, ``y`` is stepped on a geometric ladder (exact for an input linear over each step,
+    at the step's mean light) and crossed linearly between steps; once the light has settled,
+    ``y`` is an exponential towards it and crossed exactly."""
+    la = math.log(a)
+    y = state[LEVEL, j]
+    moving = b_rise != 0.0 or b_fall != 0.0
+    tau_display = 1e300
+    if b_rise != 0.0:
+        tau_display = min(tau_display, tau_rise)
+    if b_fall != 0.0:
+        tau_display = min(tau_display, tau_fall)
+    tau_slow = max(tau_rise if b_rise != 0.0 else 0.0, tau_fall if b_fall != 0.0 else 0.0)
+    settled_at = _SETTLED * tau_slow if moving else 0.0
+    lum0 = a + b_rise + b_fall
+    u = 0.0
+    lu = math.log(lum0)
+    h = _FILTER_FIRST * min(tau_display, photo_k / max(lum0, a))
+    while moving and u < min(ub, settled_at):
+        un = min(u + h, ub, settled_at)
+        lum = a
+        if b_rise != 0.0:
+            lum += b_rise * math.exp(-un / tau_rise)
+        if b_fall != 0.0:
+            lum += b_fall * math.exp(-un / tau_fall)
+        ln = math.log(lum)
+        step = un - u
+        tau = photo_k / math.exp(0.5 * (lu + ln))
+        g = (ln - lu) / step
+        yn = ln - g * tau + (y - lu + g * tau) * math.exp(-step / tau)
+        n = cross_linear(t0 + u, y, t0 + un, yn, j, state, refractory, out, n)
+        u, lu, y = un, ln, yn
+        h *= _FILTER_RATIO
+    if u < ub:  # the light has settled at ``a``: y relaxes exponentially towards ln(a)
+        tau = photo_k / a
+        n = cross_relaxation(t0 + u, ub - u, y, la, tau, j, state, refractory, out, n)
+        y = la + (y - la) * math.exp(-(ub - u) / tau)
+    state[LEVEL, j] = y
+    return n
 
 
 @numba.njit(cache=True, inline="always")
@@ -427,6 +492,7 @@ class StaticRenderer:
         c_on: np.ndarray,
         c_off: np.ndarray,
         refractory_us: float,
+        photoreceptor_hz: float = 0.0,
     ) -> None:
         region = regions(sample_points, layout)
         sees_marker = (region >= 0).any(axis=1)
@@ -460,6 +526,15 @@ class StaticRenderer:
             np.log(self.pix_const + lum), c_on[self.pix_index], c_off[self.pix_index]
         )
         self.refractory = float(refractory_us)
+        self._photo_k = 0.0
+        """Photoreceptor time constant (us) times luminance (cd/m²); 0: no low-pass."""
+        if photoreceptor_hz > 0:
+            if self._pwm[0] > 0:
+                raise ValueError(
+                    "the photoreceptor low-pass is not simulated under a PWM backlight; give "
+                    "the sensor photoreceptor_hz=0 or the display pwm_hz=None"
+                )
+            self._photo_k = PHOTORECEPTOR_REF_NITS / (2 * math.pi * photoreceptor_hz) * 1e6
         # Refresh start_refresh reaches each pixel's screen row at its scan-out delay.
         self.next_switch = self.pix_v * d.scan_us
         self.at_rest = np.zeros(len(self.pix_index), bool)
@@ -504,6 +579,7 @@ class StaticRenderer:
                 self.state,
                 self.refractory,
                 out,
+                self._photo_k,
             )
             parts_t.append(out["t"][:n].copy())
             parts_i.append(self.pix_index[out["i"][:n]])

@@ -24,6 +24,8 @@ from eventocc.receiver.events import EVENT_DTYPE
 
 SHOT_NOISE_BRIGHT_FACTOR = 0.25
 """v2e: shot-noise rate at full intensity relative to the dark rate."""
+PHOTORECEPTOR_REF_NITS = 100.0
+"""Scene luminance (cd/m²) at which ``SensorModel.photoreceptor_hz`` is stated."""
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,21 @@ class SensorModel:
     """Dark current as an equivalent scene luminance: the floor under the log."""
     max_rate_hz: float | None = None
     """Readout cap in events per second (None: unlimited); excess events drop uniformly per ms."""
+    photoreceptor_hz: float = 0.0
+    """3 dB cut-off of the photoreceptor at ``PHOTORECEPTOR_REF_NITS`` of scene luminance,
+    proportional to the pixel's luminance (v2e); 0: infinitely fast. A first-order low-pass of
+    the log irradiance; simulated for a still camera (a moving one is refused)."""
+    readout_hz: float | None = None
+    """Peak rate of the sensor's readout (events/s): beyond it events wait and are timestamped
+    late (``eventocc.receiver.sim.readout``). None: unlimited."""
+    erc_hz: float | None = None
+    """Event-rate controller: at most this rate (events/s) in each ``erc_period_us``, the
+    excess dropped evenly. None: off."""
+    erc_period_us: int = 1000
+    link_hz: float | None = None
+    """Events/s the link to the host carries; None: unlimited."""
+    link_buffer: int = 0
+    """Events the camera buffers for the link; while it is full, arriving events are lost."""
 
     def __post_init__(self) -> None:
         if self.lux < 0:
@@ -74,6 +91,22 @@ class SensorModel:
             raise ValueError(f"dark_nits must be positive, got {self.dark_nits}")
         if self.max_rate_hz is not None and self.max_rate_hz <= 0:
             raise ValueError(f"max_rate_hz must be positive or None, got {self.max_rate_hz}")
+        for name in ("readout_hz", "erc_hz", "link_hz"):
+            value = getattr(self, name)
+            if value is not None and value <= 0:
+                raise ValueError(f"{name} must be positive or None, got {value}")
+        if self.photoreceptor_hz < 0:
+            raise ValueError(f"photoreceptor_hz must be >= 0, got {self.photoreceptor_hz}")
+        if self.erc_period_us < 1:
+            raise ValueError(f"erc_period_us must be >= 1 us, got {self.erc_period_us}")
+        if self.link_hz is not None and self.link_buffer < 1:
+            raise ValueError(
+                f"a link needs a buffer of at least one event, got link_buffer={self.link_buffer}"
+            )
+        if self.erc_hz is not None and self.erc_hz * self.erc_period_us * 1e-6 < 1:
+            raise ValueError(
+                f"erc_hz {self.erc_hz:g}/s lets no event through a {self.erc_period_us} us period"
+            )
 
     @classmethod
     def preset(cls, name: str, lux: float | None = None) -> SensorModel:
@@ -107,6 +140,41 @@ _GEN4 = SensorModel(
     jitter_us=50.0,  # IEBCS example
 )
 
+_EVK4 = SensorModel(
+    # Prophesee EVK4 HD: Sony IMX636 (Prophesee Gen 4.1), 1280x720, 4.86 um pixels; the paper's
+    # camera. Biases at their defaults: each field below moves with one of them (Prophesee's
+    # "Biases" manual: bias_diff_on/off the thresholds, bias_refr the refractory period,
+    # bias_fo the photoreceptor's low-pass).
+    name="evk4",
+    lux=250.0,  # the paper's "normal indoor lighting"
+    # IMX636 nominal contrast sensitivity ~25 % (vendor figure) -> ln(1.25) = 0.22.
+    threshold_on=0.22,
+    threshold_off=0.22,
+    # Pixel-to-pixel threshold mismatch: v2e's CLI default 0.03, v2e/OpenEB "noisy" 0.05.
+    threshold_sigma=0.04,
+    # bias_refr's dead time; simulators' defaults span IEBCS's 50 us to v2e's 500 us.
+    refractory_us=100.0,
+    leak_hz=0.1,  # v2e / OpenEB "noisy" leak rate
+    shot_hz=0.1,  # low end of v2e/OpenEB noisy 0.1-10 Hz
+    # IMX636 latency < 100 us at 1 klux (vendor figure): a white surface under 1 klux is
+    # 318 cd/m², so tau = 100 us there, f3dB = 1 / (2 pi tau) = 1.6 kHz, 500 Hz at 100 cd/m²
+    # (v2e: the cut-off scales with the light). The screen's white then takes tau = 127 us,
+    # its black (1.8 cd/m² at 250 lux) 17 ms.
+    photoreceptor_hz=500.0,
+    latency_us=0.0,  # the photoreceptor above is the pixel's latency
+    jitter_us=50.0,  # IEBCS example
+    # Finateu et al., ISSCC 2020 (the IMX636's design): "1.066 GEPS readout".
+    readout_hz=1.066e9,
+    # The sensor's event-rate controller (Prophesee's ESP manual) as our receiver sets it on a
+    # live EVK4 (receiver/live/controls.py: 100 M events/s in 1 ms periods).
+    erc_hz=100e6,
+    erc_period_us=1000,
+    # USB 3 link: 1.6 Gbit/s (Prophesee's EVK3 page; the EVK4 has the same interface) at 25
+    # bits per event (Lucid's Triton2 EVS note: ERC at 40 M events/s for a 1 Gbit/s link).
+    link_hz=64e6,
+    link_buffer=64_000,  # our assumption: one millisecond of the link buffered in the camera
+)
+
 PRESETS: dict[str, SensorModel] = {
     # ESIM's clean defaults: thresholds 0.2, no mismatch, no noise, no delay.
     "ideal": SensorModel(),
@@ -114,6 +182,7 @@ PRESETS: dict[str, SensorModel] = {
     # The paper's other two light levels (Sec. V-A): night-time and sunlit rooms.
     "gen4-night": replace(_GEN4, name="gen4-night", lux=10.0),
     "gen4-sunlit": replace(_GEN4, name="gen4-sunlit", lux=1000.0),
+    "evk4": _EVK4,
 }
 
 
@@ -219,6 +288,33 @@ def cross_exponential(t0, ua, ub, a, b, tau, i, state, refractory, out, n):
         n = _emit(t0 + min(max(u, ua), ub), i, -1, state, refractory, out, n)
         state[REF, i] = level
     state[LEVEL, i] = lb
+    return n
+
+
+@numba.njit(cache=True, inline="always")
+def _relaxed_at(d0, d, tau, span):
+    """When (within [0, span]) ``d0 exp(-u / tau)`` reaches ``d``."""
+    if d == 0.0:
+        return span
+    if d0 * d <= 0.0:
+        return 0.0
+    return min(max(tau * math.log(d0 / d), 0.0), span)
+
+
+@numba.njit(cache=True)
+def cross_relaxation(t0, span, y0, target, tau, j, state, refractory, out, n):
+    """Events of pixel ``j`` while its level relaxes as ``target + (y0 - target) exp(-u/tau)``
+    over ``u`` in [0, span] from ``t0``; crossing times are exact."""
+    y_end = target + (y0 - target) * math.exp(-span / tau)
+    d0 = y0 - target
+    while y_end >= state[REF, j] + state[C_ON, j]:
+        level = state[REF, j] + state[C_ON, j]
+        n = _emit(t0 + _relaxed_at(d0, level - target, tau, span), j, 1, state, refractory, out, n)
+        state[REF, j] = level
+    while y_end <= state[REF, j] - state[C_OFF, j]:
+        level = state[REF, j] - state[C_OFF, j]
+        n = _emit(t0 + _relaxed_at(d0, level - target, tau, span), j, -1, state, refractory, out, n)
+        state[REF, j] = level
     return n
 
 

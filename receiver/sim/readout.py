@@ -1,0 +1,116 @@
+"""What a real camera does with more events than it can carry: the sensor's readout, its
+event-rate controller and the link to the host, applied in that order to the packed events.
+
+- **Sensor readout** (``SensorModel.readout_hz``): the arbiter reads events out one after the
+  other at a fixed peak rate and timestamps them as it does; beyond that rate they wait, so a
+  burst comes out with late timestamps (none is lost here).
+- **Event-rate controller** (``erc_hz`` over ``erc_period_us``): the sensor's ERC keeps at most
+  ``erc_hz * erc_period_us`` events of each period, dropping the excess evenly over the period.
+- **Link** (``link_hz``, ``link_buffer``): the camera buffers what the link cannot send at once;
+  while that buffer is full, arriving events are lost in runs (the host sees lost packets). The
+  link only delays delivery: the surviving events keep their sensor timestamps.
+
+The stages see the events in time order, window after window, and carry their state across
+windows; they draw from their own random stream, so a scene without them keeps its events bit
+for bit.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from eventocc.receiver.sim.sensor import SensorModel
+
+
+class Readout:
+    """The readout stages of ``sensor`` that are switched on, with their state."""
+
+    def __init__(self, sensor: SensorModel, rng: np.random.Generator) -> None:
+        self.sensor = sensor
+        self._rng = rng
+        self._next_free_us = -np.inf
+        """Sensor readout: when the arbiter can read its next event."""
+        self._queued = 0.0
+        self._queued_at_us = -np.inf
+        """Link: events waiting in the camera's buffer, as of this time."""
+        self.delayed = 0
+        self.dropped_erc = 0
+        self.dropped_link = 0
+
+    @property
+    def active(self) -> bool:
+        s = self.sensor
+        return s.readout_hz is not None or s.erc_hz is not None or s.link_hz is not None
+
+    def apply(self, events: np.ndarray) -> np.ndarray:
+        """The events (sorted by time) that leave the camera, with their timestamps."""
+        s = self.sensor
+        if not len(events):
+            return events
+        if s.readout_hz is not None:
+            t, self._next_free_us = _arbiter(
+                events["t"].astype(np.float64), 1e6 / s.readout_hz, self._next_free_us
+            )
+            t_us = np.rint(t).astype(events["t"].dtype)
+            self.delayed += int(np.count_nonzero(t_us != events["t"]))
+            events = events.copy()
+            events["t"] = t_us
+        if s.erc_hz is not None:
+            keep = erc_keep(
+                events["t"], s.erc_hz * s.erc_period_us * 1e-6, s.erc_period_us, self._rng
+            )
+            self.dropped_erc += int(len(keep) - np.count_nonzero(keep))
+            events = events[keep]
+        if s.link_hz is not None and len(events):
+            keep, self._queued, self._queued_at_us = _link(
+                events["t"].astype(np.float64),
+                s.link_hz * 1e-6,
+                float(s.link_buffer),
+                self._queued,
+                self._queued_at_us,
+            )
+            self.dropped_link += int(len(keep) - np.count_nonzero(keep))
+            events = events[keep]
+        return events
+
+
+@numba.njit(cache=True)
+def _arbiter(t, spacing_us, next_free):
+    """Readout times of events arriving at ``t`` (sorted) at a reader that takes one event per
+    ``spacing_us``: each leaves at its arrival or when the reader is free, whichever is later."""
+    out = np.empty_like(t)
+    for k in range(t.shape[0]):
+        leave = max(t[k], next_free)
+        out[k] = leave
+        next_free = leave + spacing_us
+    return out, next_free
+
+
+def erc_keep(
+    t_us: np.ndarray, per_period: float, period_us: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Mask keeping at most ``per_period`` events in each ``period_us``, chosen evenly (a
+    random subset) among that period's events."""
+    period = t_us // period_us
+    order = np.lexsort((rng.random(len(period)), period))
+    first = np.searchsorted(period[order], period[order], side="left")
+    rank = np.arange(len(period)) - first
+    keep = np.zeros(len(period), bool)
+    keep[order[rank < int(per_period)]] = True
+    return keep
+
+
+@numba.njit(cache=True)
+def _link(t, per_us, buffer, queued, queued_at):
+    """Leaky bucket: the link drains ``per_us`` events per microsecond from a buffer of
+    ``buffer`` events; an event arriving at a full buffer is lost."""
+    keep = np.zeros(t.shape[0], np.bool_)
+    for k in range(t.shape[0]):
+        if t[k] > queued_at:
+            queued = max(queued - (t[k] - queued_at) * per_us, 0.0)
+            queued_at = t[k]
+        if queued + 1.0 <= buffer:
+            queued += 1.0
+            keep[k] = True
+    return keep, queued, queued_at
