@@ -23,7 +23,8 @@ from eventocc.receiver.sim.scene import Scene
 from eventocc.receiver.sim.sensor import BackgroundNoise, PixelArray, background_rates, to_events
 
 _MARGIN_PX = 4.0
-"""Pixels beyond the marker's outline that may still see it (blur, footprint)."""
+"""Pixels beyond the marker's outline that may still see it (blur, footprint); a sampled
+point-spread function adds its reach."""
 
 
 class Recording:
@@ -112,11 +113,7 @@ def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: P
         )
     T = rec.trajectory.pose_at(np.zeros(1))[0]
     pix_index = _pixels_near_marker(scene, T)
-    rays = sample_rays(cam, scene.optics, pix_index % cam.width, pix_index // cam.width)
-    points = rays_to_plane(rays, T)
-    return StaticRenderer(
-        pix_index,
-        points,
+    common = (
         scene.layout,
         timeline,
         scene.radiometry,
@@ -125,16 +122,30 @@ def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: P
         sensor.refractory_us,
         sensor.photoreceptor_hz,
     )
+    if scene.optics.psf_step_px is not None:
+        offsets, weights = scene.optics.psf()
+        offsets = offsets / cam.K[[0, 1], [0, 1]]  # to normalised ray units, as sample_offsets
+
+        def points_of(idx: np.ndarray) -> np.ndarray:
+            rays = centre_rays(cam, idx % cam.width, idx // cam.width)
+            return rays_to_plane(rays[:, None, :] + offsets[None], T)
+
+        return StaticRenderer(pix_index, points_of, *common, sample_weights=weights)
+    rays = sample_rays(cam, scene.optics, pix_index % cam.width, pix_index // cam.width)
+    return StaticRenderer(pix_index, rays_to_plane(rays, T), *common)
 
 
 def _pixels_near_marker(scene: Scene, T_world_cam: np.ndarray) -> np.ndarray:
     """Flat indices of the pixels whose centre ray lands on the marker or just beside it."""
     cam = scene.camera
-    x0, x1, y0, y1 = image_box(cam, T_world_cam, scene.rig.corners, 2 * _MARGIN_PX)
+    reach = _MARGIN_PX
+    if scene.optics.psf_step_px is not None:
+        reach = max(reach, scene.optics.psf_reach_px + 1.0)
+    x0, x1, y0, y1 = image_box(cam, T_world_cam, scene.rig.corners, 2 * reach)
     ys, xs = np.mgrid[y0:y1, x0:x1].reshape(2, -1)
     centre = rays_to_plane(centre_rays(cam, xs, ys), T_world_cam)
     depth = np.linalg.norm(T_world_cam[:3, 3] - scene.rig.centre)
-    margin = _MARGIN_PX * depth / cam.K[0, 0] * 2  # x2: oblique views stretch the footprint
+    margin = reach * depth / cam.K[0, 0] * 2  # x2: oblique views stretch the footprint
     lo = scene.rig.corners[0, 0] - margin
     hi = scene.rig.corners[2, 0] + margin
     with np.errstate(invalid="ignore"):

@@ -19,6 +19,7 @@ are held back by the caller.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba
@@ -123,8 +124,9 @@ def screen_fraction(points: np.ndarray, layout: ScreenLayout) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _group_cells(region: np.ndarray):
-    """Per pixel (row of ``region``), the distinct cells its samples hit and their weights."""
+def _group_cells(region: np.ndarray, sample_weight: np.ndarray):
+    """Per pixel (row of ``region``), the distinct cells its samples hit and their weights
+    (the sum of ``sample_weight`` over the samples on each)."""
     n, s = region.shape
     ptr = np.zeros(n + 1, np.int64)
     cells = np.empty(n * s, np.int32)
@@ -138,12 +140,12 @@ def _group_cells(region: np.ndarray):
             found = False
             for m in range(ptr[j], q):
                 if cells[m] == c:
-                    weights[m] += 1.0 / s
+                    weights[m] += sample_weight[k]
                     found = True
                     break
             if not found:
                 cells[q] = c
-                weights[q] = 1.0 / s
+                weights[q] = sample_weight[k]
                 q += 1
         ptr[j + 1] = q
     return ptr, cells[:q], weights[:q]
@@ -475,6 +477,50 @@ def _cross_two_exponentials(
     return n
 
 
+_FOOTPRINT_CHUNK = 8192
+"""Pixels whose sampled point-spread functions are mapped at once (bounds the memory)."""
+
+
+def _weighted_footprints(
+    pix_index: np.ndarray,
+    points_of: Callable[[np.ndarray], np.ndarray],
+    sample_weight: np.ndarray,
+    layout: ScreenLayout,
+    rad: Radiometry,
+):
+    """``StaticRenderer``'s per-pixel tables (pixels, ptr, cells, weights, constant light,
+    scan-out delay) for footprints of weighted samples, pixels that see no cell left out."""
+    kept, ptrs, cells, weights, const, v = [], [np.zeros(1, np.int64)], [], [], [], []
+    offset = 0
+    for lo in range(0, len(pix_index), _FOOTPRINT_CHUNK):
+        idx = pix_index[lo : lo + _FOOTPRINT_CHUNK]
+        points = points_of(idx)
+        region = regions(points, layout)
+        sees = (region >= 0).any(axis=1)
+        region, points = region[sees], points[sees]
+        ptr, c, w = _group_cells(region, sample_weight)
+        kept.append(idx[sees])
+        ptrs.append(ptr[1:] + offset)
+        offset += len(c)
+        cells.append(c)
+        weights.append(w)
+        const.append(
+            rad.dark
+            + rad.screen_ambient * ((region >= 0) @ sample_weight)
+            + rad.screen_black * ((region == SCREEN) @ sample_weight)
+            + rad.wall * ((region == WALL) @ sample_weight)
+        )
+        v.append(screen_fraction(points, layout) @ sample_weight)
+    return (
+        np.concatenate(kept),
+        np.concatenate(ptrs),
+        np.concatenate(cells) if cells else np.zeros(0, np.int32),
+        np.concatenate(weights) if weights else np.zeros(0),
+        np.concatenate(const) if const else np.zeros(0),
+        np.concatenate(v) if v else np.zeros(0),
+    )
+
+
 class StaticRenderer:
     """Signal events of a still camera: each pixel's cell mix is fixed, its state compact."""
 
@@ -485,7 +531,7 @@ class StaticRenderer:
     def __init__(
         self,
         pix_index: np.ndarray,
-        sample_points: np.ndarray,
+        sample_points: np.ndarray | Callable[[np.ndarray], np.ndarray],
         layout: ScreenLayout,
         timeline: DisplayTimeline,
         radiometry: Radiometry,
@@ -493,23 +539,34 @@ class StaticRenderer:
         c_off: np.ndarray,
         refractory_us: float,
         photoreceptor_hz: float = 0.0,
+        sample_weights: np.ndarray | None = None,
     ) -> None:
-        region = regions(sample_points, layout)
-        sees_marker = (region >= 0).any(axis=1)
-        region, sample_points = region[sees_marker], sample_points[sees_marker]
-        self.pix_index = pix_index[sees_marker]
-        self.ptr, self.cells, self.weights = _group_cells(region)
-        s = region.shape[1]
-        rad = radiometry
-        # Constant part of each pixel's irradiance: reflection on its cell samples, the black
-        # screen and wall it also sees, and the dark floor.
-        self.pix_const = (
-            rad.dark
-            + rad.screen_ambient * (region >= 0).sum(1) / s
-            + rad.screen_black * (region == SCREEN).sum(1) / s
-            + rad.wall * (region == WALL).sum(1) / s
-        )
-        self.pix_v = screen_fraction(sample_points, layout).mean(axis=1)
+        """``sample_points``: (n, S, 2) marker-plane points of each pixel's footprint samples,
+        equally weighted; or, with ``sample_weights`` (S,), a function giving them for a chunk
+        of ``pix_index`` (a sampled point-spread function has many samples per pixel)."""
+        if sample_weights is not None:
+            assert callable(sample_points)
+            self.pix_index, self.ptr, self.cells, self.weights, self.pix_const, self.pix_v = (
+                _weighted_footprints(pix_index, sample_points, sample_weights, layout, radiometry)
+            )
+        else:
+            assert not callable(sample_points)
+            region = regions(sample_points, layout)
+            sees_marker = (region >= 0).any(axis=1)
+            region, sample_points = region[sees_marker], sample_points[sees_marker]
+            self.pix_index = pix_index[sees_marker]
+            s = region.shape[1]
+            self.ptr, self.cells, self.weights = _group_cells(region, np.full(s, 1.0 / s))
+            rad = radiometry
+            # Constant part of each pixel's irradiance: reflection on its cell samples, the
+            # black screen and wall it also sees, and the dark floor.
+            self.pix_const = (
+                rad.dark
+                + rad.screen_ambient * (region >= 0).sum(1) / s
+                + rad.screen_black * (region == SCREEN).sum(1) / s
+                + rad.wall * (region == WALL).sum(1) / s
+            )
+            self.pix_v = screen_fraction(sample_points, layout).mean(axis=1)
         self.timeline = timeline
         d = timeline.display
         self._tau = (d.rise_ms * 1e3, d.fall_ms * 1e3)
