@@ -99,3 +99,22 @@ def test_cli_writes_events_poses_frames_and_scene(tmp_path):
     }
     frames = np.load(out / "frames.npz")
     assert frames["is_data"][0] and frames["payload_bits"].shape[1:] == (16, 16)
+
+
+def test_cli_sizes_the_marker_for_the_pixels_per_cell_asked(tmp_path):
+    msg = tmp_path / "msg.txt"
+    msg.write_bytes(b"pixels per cell")
+    out = tmp_path / "rec"
+    args = ["simulate", "--message", str(msg), "--cells", "16", "--duration", "0.02"]
+    assert main([*args, "--px-per-cell", "9", "--distance", "3", "--out", str(out)]) == 0
+    described = json.loads((out / "scene.json").read_text())
+    assert described["cell_px"] == pytest.approx(9.0, rel=1e-6)
+    assert described["sensor"]["name"] == "gen4-indoor"
+
+
+def test_cli_refuses_pixels_per_cell_that_do_not_make_a_marker(tmp_path, capsys):
+    msg = tmp_path / "msg.txt"
+    msg.write_bytes(b"x")
+    args = ["simulate", "--message", str(msg), "--out", str(tmp_path / "rec")]
+    assert main([*args, "--px-per-cell", "0"]) == 2
+    assert "--px-per-cell must be positive" in capsys.readouterr().err

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.sim import (
     HandHeldMotion,
+    Optics,
     Scene,
     SensorModel,
     StaticMotion,
@@ -17,6 +19,7 @@ from eventocc.receiver.sim import (
     simulate,
 )
 from eventocc.receiver.sim.recording import write_recording
+from eventocc.receiver.sim.scene import marker_size_for_cell_px
 from eventocc.receiver.sim.sensor import PRESETS
 
 log = logging.getLogger(__name__)
@@ -41,6 +44,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=0.272,
         help="side of the white ring's outer boundary, metres",
     )
+    p.add_argument(
+        "--px-per-cell",
+        type=float,
+        help="size the marker so a cell spans this many pixels at --distance, facing the "
+        "camera (overrides --marker-size)",
+    )
     p.add_argument("--duration", type=float, default=5.0, help="seconds")
     p.add_argument("--preset", choices=tuple(PRESETS), default="gen4-indoor")
     p.add_argument("--lux", type=float, help="ambient light (default: the preset's)")
@@ -54,6 +63,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except ValueError as exc:  # options the scene refuses: say what, no traceback
+        print(f"eventocc-receiver simulate: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.trajectory is not None:
         motion = TumMotion(str(args.trajectory))
     elif args.motion == "static":
@@ -62,16 +79,26 @@ def run(args: argparse.Namespace) -> int:
         motion = HandHeldMotion(
             distance_m=args.distance or 0.6, flow_px_per_ms=args.flow, seed=args.seed
         )
+    encoder = StreamEncoder(
+        args.message.read_bytes(), name=args.message.name, profile=args.profile, cells=args.cells
+    )
+    marker_size = args.marker_size
+    if args.px_per_cell is not None:
+        if not args.px_per_cell > 0:
+            raise ValueError(f"--px-per-cell must be positive, got {args.px_per_cell:g}")
+        if args.trajectory is not None and args.distance is None:
+            raise ValueError("--px-per-cell with --trajectory needs --distance (metres)")
+        distance = args.distance or (1.25 if args.motion == "static" else 0.6)
+        camera = Scene(encoder).camera
+        marker_size = marker_size_for_cell_px(
+            args.px_per_cell, encoder.geometry, distance, camera.K[0, 0]
+        )
     scene = Scene(
-        encoder=StreamEncoder(
-            args.message.read_bytes(),
-            name=args.message.name,
-            profile=args.profile,
-            cells=args.cells,
-        ),
-        marker_size_m=args.marker_size,
+        encoder=encoder,
+        marker_size_m=marker_size,
         motion=motion,
         sensor=SensorModel.preset(args.preset, lux=args.lux),
+        optics=Optics.preset(args.preset),
         start_refresh=args.start_refresh,
         seed=args.seed,
     )
