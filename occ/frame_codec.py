@@ -35,6 +35,8 @@ from eventocc.occ.framing import (
 from eventocc.occ.profiles import LinkProfile
 
 OVERHEAD = FrameHeader.SIZE + FrameHeader.CRC_SIZE
+ERASURE_MARGIN = 2
+"""Parity bytes a retry with extra erasures keeps back for detection (``_erase_least_sure``)."""
 
 
 class FrameCodec:
@@ -80,13 +82,23 @@ class FrameCodec:
     def decode(
         self, bits: np.ndarray, confidence: np.ndarray | None = None
     ) -> tuple[FrameHeader, bytes] | None:
-        """Header and symbol of a frame read from the cells, or None if it cannot be trusted."""
-        coded = cells_to_bytes(np.asarray(bits, dtype=np.uint8) ^ self.mask, self.coded_bytes)
+        """Header and symbol of a frame read from the cells, or None if it cannot be trusted.
+
+        With ``confidence``, bytes with a cell below ``profile.erasure_below`` are erasures;
+        a codeword that still fails is decoded again with more of its least confident bytes
+        erased (``profile.erasure_rounds``): generalised minimum-distance decoding, which an
+        erasure pays for when at least one in three of the erased bytes was wrong."""
+        coded = deinterleave(
+            cells_to_bytes(np.asarray(bits, dtype=np.uint8) ^ self.mask, self.coded_bytes),
+            self.codewords,
+        )
         erasures = None
         if confidence is not None:
-            low = byte_min(confidence, self.coded_bytes) < self.profile.erasure_below
-            erasures = deinterleave(low, self.codewords)
-        data, ok = self.rs.decode(deinterleave(coded, self.codewords), erasures)
+            sureness = deinterleave(byte_min(confidence, self.coded_bytes), self.codewords)
+            erasures = sureness < self.profile.erasure_below
+        data, ok = self.rs.decode(coded, erasures)
+        if not ok.all() and confidence is not None:
+            data, ok = self._erase_least_sure(coded, sureness, erasures, data, ok)
         if not ok.all():
             return None
         data = data.reshape(-1)
@@ -95,3 +107,33 @@ class FrameCodec:
             return unseal(data[: self._crc.stop].tobytes())
         except FramingError:
             return None
+
+    def _erase_least_sure(
+        self,
+        coded: np.ndarray,
+        sureness: np.ndarray,
+        erasures: np.ndarray,
+        data: np.ndarray,
+        ok: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Retry the failed codewords with the ``k`` least sure bytes of each erased, for
+        ``k`` in even steps up to ``nsym - 2 * ERASURE_MARGIN``; each retry keeps
+        ``ERASURE_MARGIN`` parity bytes back for detection (``ReedSolomon.decode``), so a
+        word the erasures push next to the wrong codeword is refused rather than "corrected"."""
+        rounds = self.profile.erasure_rounds
+        most = self.rs.nsym - 2 * ERASURE_MARGIN
+        if rounds < 1 or most < 1:
+            return data, ok
+        order = np.argsort(sureness, axis=1, kind="stable")
+        rank = np.empty_like(order)
+        np.put_along_axis(rank, order, np.arange(order.shape[1])[None, :], axis=1)
+        data, ok = data.copy(), ok.copy()
+        for r in range(1, rounds + 1):
+            failed = np.flatnonzero(~ok)
+            if not len(failed):
+                break
+            erase = erasures[failed] | (rank[failed] < round(most * r / rounds))
+            got, fixed = self.rs.decode(coded[failed], erase, margin=ERASURE_MARGIN)
+            data[failed[fixed]] = got[fixed]
+            ok[failed[fixed]] = True
+        return data, ok

@@ -28,8 +28,13 @@ class LinkProfile:
     parity_fraction: float = 0.25
     """Share of each Reed-Solomon codeword spent on parity (framed profiles); 0.25 corrects
     about 12% wrong bytes, i.e. ~1% independent bit errors, the paper's dynamic BER."""
-    erasure_below: float = 0.5
-    """A byte with any cell of confidence below this becomes an RS erasure."""
+    erasure_below: float = 1 / 32
+    """A byte with any cell of confidence below this becomes an RS erasure (the receiver's
+    confidence is a cell's distance from its threshold over half the contrast, so this is a
+    64th of the contrast)."""
+    erasure_rounds: int = 3
+    """Retries of a failed Reed-Solomon codeword, each with more of its least confident bytes
+    erased (``FrameCodec.decode``); 0: erasures from ``erasure_below`` only."""
     block_symbols: int = 1024
     """Fountain source symbols per block: the unit of memory and of RaptorQ encoding."""
     repair_ratio: float = 0.25

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,6 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from eventocc.occ.frame_codec import FrameCodec
+from eventocc.occ.framing import FrameHeader
+from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import StreamDecoder, StreamEncoder
 
 FRAMED = ("robust", "fast")
@@ -341,3 +344,32 @@ def test_fast_cells_do_not_toggle_in_lockstep_with_the_inner_locator() -> None:
     assert len(symbols) > 30
     always_one = np.all(symbols == 1, axis=0)
     assert not always_one.any()
+
+
+def _frame_with_unsure_errors(cells: int, wrong: int):
+    """A robust frame whose first codeword has ``wrong`` wrong bytes, more than its parity
+    corrects as errors; each wrong byte holds one cell of middling confidence (above the
+    outright erasure level), every other cell full confidence."""
+    codec = FrameCodec(get_profile("robust"), cells)
+    symbol = bytes(range(codec.symbol_size))
+    bits = codec.encode(FrameHeader(7, 0, 1, 3), symbol)
+    confidence = np.ones(bits.shape)
+    # Frame byte p belongs to codeword p % codewords: flip one cell of each of its bytes.
+    positions = np.arange(wrong) * codec.codewords
+    flat_bits, flat_conf = bits.reshape(-1), confidence.reshape(-1)
+    flat_bits[8 * positions] ^= 1
+    flat_conf[8 * positions] = 0.3
+    return codec, bits, confidence, symbol
+
+
+def test_least_confident_bytes_are_erased_when_errors_alone_fail() -> None:
+    # Beyond errors-only decoding, within erasures:
+    wrong = FrameCodec(get_profile("robust"), 32).rs.nsym // 2 + 3
+    codec, bits, confidence, symbol = _frame_with_unsure_errors(32, wrong)
+    assert get_profile("robust").erasure_below < 0.3  # not erased outright
+    hard = FrameCodec(replace(get_profile("robust"), erasure_rounds=0), 32)
+    assert hard.decode(bits, confidence) is None
+    header, got = codec.decode(bits, confidence)
+    assert got == symbol and header.esi == 3
+    # Without confidences nothing tells the wrong bytes apart.
+    assert codec.decode(bits) is None

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from bench.tracking import CAMERA
+from eventocc.occ.profiles import get_profile
 from eventocc.receiver.pipeline.buffer import EventColumns
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.decoder import CellReader
@@ -128,15 +129,18 @@ def test_only_cells_that_could_go_either_way_become_erasures():
     payload = np.tile([0.0, 1.0], (16, 8))
     payload[0, :4] = [0.5 - 1 / 10, 0.5 + 1 / 10, 0.5 - 1 / 200, 0.5 + 1 / 200]
     read = CellReader(CONFIG, first_burst_us=0.0)._classify(0, _density(payload), 1000)
-    erasure_below = 0.5  # the framed profiles' RS erasure level
+    erasure_below = get_profile("robust").erasure_below  # the framed profiles' RS erasures
     assert np.all(read.confidence[0, :2] >= erasure_below)
     assert np.all(read.confidence[0, 2:4] < erasure_below)
     assert read.confidence[1:].min() == 1.0
-    # Sure only half the contrast away (``DecoderParams.sure_contrast``): all four are erasures.
-    wide = replace(CONFIG, decoder=replace(CONFIG.decoder, sure_contrast=0.5))
-    read = CellReader(wide, first_burst_us=0.0)._classify(0, _density(payload), 1000)
-    assert np.all(read.confidence[0, :4] < erasure_below)
-    assert read.confidence[1:].min() == 1.0
+    # Below full confidence the confidences rank the cells, for the decoder's extra erasures.
+    assert read.confidence[0, 2:4].max() < read.confidence[0, :2].min() < 1.0
+    # Sure a 32nd of the contrast away (``DecoderParams.sure_contrast``): only the two nearest
+    # fall short of full confidence.
+    narrow = replace(CONFIG, decoder=replace(CONFIG.decoder, sure_contrast=1 / 32))
+    read = CellReader(narrow, first_burst_us=0.0)._classify(0, _density(payload), 1000)
+    assert np.all(read.confidence[0, :2] == 1.0)
+    assert np.all(read.confidence[0, 2:4] < 1.0)
 
 
 def test_a_frame_read_before_any_burst_timed_the_clock_is_not_seen():

@@ -189,10 +189,13 @@ class DecoderParams:
     lost_after_frames: int = 6
     """Consecutive frames without the inner locator before tracking counts as lost."""
     min_locator_score: float = 0.3
-    sure_contrast: float = 1 / 32
-    """A cell this share of the contrast away from the threshold has full confidence (half of it
-    makes an RS erasure): narrow, since an erasure pays only when a third of the erased bytes
-    are wrong, and under motion a cell an eighth of the contrast away is still mostly right."""
+    sure_contrast: float = 1 / 2
+    """A cell this share of the contrast away from the threshold has full confidence: wide, so
+    that the confidences rank the cells for the Reed-Solomon decoder's extra erasures
+    (``FrameCodec.decode``). The framed profiles erase outright only below 1/32 of it
+    (``LinkProfile.erasure_below``), a 64th of the contrast: an erasure pays only when a third
+    of the erased bytes are wrong, and under motion a cell an eighth of the contrast away is
+    still mostly right."""
     turn_frames: int = 3
     """Read frames over which the inner locator's 'L' is judged (``min_turn_lead``)."""
     min_turn_lead: float = 0.5
