@@ -206,12 +206,13 @@ class StreamDecoder:
     def __init__(
         self,
         *,
-        profile: str = DEFAULT_PROFILE,
+        profile: str | LinkProfile = DEFAULT_PROFILE,
         cells: int = 16,
         message_size: int | None = None,
         name: str = "",
     ) -> None:
-        self.profile = get_profile(profile)
+        """``profile``: a name, or a profile whose receiver settings (erasures) differ."""
+        self.profile = profile if isinstance(profile, LinkProfile) else get_profile(profile)
         self.geometry = MarkerGeometry(cells)
         self.name = name
         self._delivered: set[int] = set()

@@ -45,9 +45,9 @@ class Optics:
 
     @classmethod
     def preset(cls, sensor_preset: str) -> Optics:
-        """The lens that goes with a sensor preset (``SensorModel.preset``): ``evk4``'s own,
-        the default lens for every other."""
-        return EVK4_LENS if sensor_preset == "evk4" else cls()
+        """The lens that goes with a sensor preset (``SensorModel.preset``): the EVK4's for
+        ``evk4`` and its variants, the default lens for every other."""
+        return EVK4_LENS if sensor_preset.startswith("evk4") else cls()
 
     def offsets(self) -> np.ndarray:
         """(S, 2) sample offsets in pixels around a pixel centre."""

@@ -90,14 +90,16 @@ def _arbiter(t, spacing_us, next_free):
 def erc_keep(
     t_us: np.ndarray, per_period: float, period_us: int, rng: np.random.Generator
 ) -> np.ndarray:
-    """Mask keeping at most ``per_period`` events in each ``period_us``, chosen evenly (a
-    random subset) among that period's events."""
+    """Mask keeping at most ``per_period`` events in each ``period_us`` of the time-sorted
+    ``t_us``, chosen evenly (a random subset) among that period's events."""
+    budget = int(per_period)
+    keep = np.ones(len(t_us), bool)
     period = t_us // period_us
-    order = np.lexsort((rng.random(len(period)), period))
-    first = np.searchsorted(period[order], period[order], side="left")
-    rank = np.arange(len(period)) - first
-    keep = np.zeros(len(period), bool)
-    keep[order[rank < int(per_period)]] = True
+    starts = np.flatnonzero(np.r_[True, period[1:] != period[:-1]])
+    counts = np.diff(np.r_[starts, len(t_us)])
+    for start, count in zip(starts[counts > budget], counts[counts > budget], strict=True):
+        drop = rng.choice(count, count - budget, replace=False)
+        keep[start + drop] = False
     return keep
 
 

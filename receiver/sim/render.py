@@ -44,9 +44,9 @@ _LADDER_START = 1e-3
 _LADDER_RATIO = 1.5
 _SETTLED = 12.0
 """Time constants after which a transition counts as finished."""
-_FILTER_FIRST = 0.1
+_FILTER_FIRST = 0.2
 """First step of the photoreceptor's ladder as a fraction of the faster time constant."""
-_FILTER_RATIO = 1.3
+_FILTER_RATIO = 1.5
 _FILTER_SETTLED = 1e-4
 """A filtered level this close (ln units) to its pixel's light is at rest."""
 SETTLED_CONTRAST = 1e-3
@@ -477,6 +477,24 @@ def _cross_two_exponentials(
     return n
 
 
+@numba.njit(cache=True)
+def _region_shares(region: np.ndarray, sample_weight: np.ndarray):
+    """Per pixel (row of ``region``), the weight of its samples on cells, on the black screen
+    and on the wall."""
+    n = region.shape[0]
+    cells, screen, wall = np.zeros(n), np.zeros(n), np.zeros(n)
+    for j in range(n):
+        for k in range(region.shape[1]):
+            c = region[j, k]
+            if c >= 0:
+                cells[j] += sample_weight[k]
+            elif c == SCREEN:
+                screen[j] += sample_weight[k]
+            else:
+                wall[j] += sample_weight[k]
+    return cells, screen, wall
+
+
 _FOOTPRINT_CHUNK = 8192
 """Pixels whose sampled point-spread functions are mapped at once (bounds the memory)."""
 
@@ -504,11 +522,12 @@ def _weighted_footprints(
         offset += len(c)
         cells.append(c)
         weights.append(w)
+        on_cells, on_screen, on_wall = _region_shares(region, sample_weight)
         const.append(
             rad.dark
-            + rad.screen_ambient * ((region >= 0) @ sample_weight)
-            + rad.screen_black * ((region == SCREEN) @ sample_weight)
-            + rad.wall * ((region == WALL) @ sample_weight)
+            + rad.screen_ambient * on_cells
+            + rad.screen_black * on_screen
+            + rad.wall * on_wall
         )
         v.append(screen_fraction(points, layout) @ sample_weight)
     return (
