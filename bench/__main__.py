@@ -40,6 +40,10 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
 - Everything here is simulated: the virtual event camera and the virtual frame camera, not the
   paper's Prophesee Gen4 and FLIR Blackfly S. Agreement with the paper says the models and the
   receiver are consistent, not that real hardware will do the same.
+- The event camera is the `evk4` preset: the paper's Prophesee EVK4 with its photoreceptor's
+  lag, its lens's point-spread function and the limits of its readout, each parameter sourced
+  in `receiver/sim/sensor.py` (hand-held: `evk4-moving`, the lag as a fixed latency).
+  `python -m bench.realistic` sweeps pixels per cell against the `ideal` sensor, the upper bound.
 - `--quick` uses a 480x270 sensor and clips of a few seconds. The still camera of the
   streaming experiment sees a centred crop of the paper's sensor (same lens and pixel pitch),
   so its cells cover the paper's pixels scaled by 270/720. The hand-held experiments see the

@@ -16,7 +16,7 @@ from eventocc.receiver.pipeline.config import ReceiverConfig, TrackerParams
 from eventocc.receiver.pipeline.metrics import held_s
 from eventocc.receiver.pipeline.receiver import FrameOutput, Output, Receiver
 from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
-from eventocc.receiver.sim import HandHeldMotion, Scene, SensorModel, simulate
+from eventocc.receiver.sim import HandHeldMotion, Optics, Scene, SensorModel, simulate
 
 Sensor = tuple[int, int] | None
 """A smaller sensor (width, height) standing in for the paper's 1280 x 720 one, which None
@@ -30,6 +30,8 @@ HAND_HELD_DISTANCE_M = 0.6
 """Mean camera-to-marker distance of the hand-held experiments."""
 HAND_HELD_MARKER_M = 0.272
 """The paper's screen: the marker's white ring in full-screen mode."""
+HAND_HELD_SENSOR = "evk4-moving"
+"""The paper's camera as the moving renderer simulates it (no photoreceptor low-pass)."""
 HAND_HELD_TRACKER = hand_held_config().tracker
 """The receiver's tracker setting for a moving camera (the one ``bench.tracking`` measures)."""
 
@@ -79,7 +81,8 @@ def hand_held_scene(
         marker_size_m=HAND_HELD_MARKER_M,
         camera=binned_camera(sensor),
         motion=HandHeldMotion(HAND_HELD_DISTANCE_M, flow_px_per_ms * binning(sensor), seed=seed),
-        sensor=SensorModel.preset("gen4-indoor", lux=250.0),
+        sensor=SensorModel.preset(HAND_HELD_SENSOR, lux=250.0),
+        optics=Optics.preset(HAND_HELD_SENSOR),
         seed=seed,
     )
 

@@ -17,7 +17,7 @@ from bench.experiments.eventcam import Sensor, camera, clip_message, raw_bps, ru
 from eventocc.occ.marker import MarkerGeometry
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
-from eventocc.receiver.sim import Display, Scene, SensorModel, StaticMotion
+from eventocc.receiver.sim import Display, Optics, Scene, SensorModel, StaticMotion
 from eventocc.receiver.sim.scene import marker_size_for_cell_px
 
 DISTANCE_M = 1.25
@@ -27,6 +27,8 @@ FIT_SHARE = 0.9
 """The white ring (what detection and tracking need) spans at most this share of the sensor
 height, leaving a margin for the blur and the detector's search."""
 PAPER_PEAK_BPS = 114_000
+SENSOR = "evk4"
+"""The camera: the paper's (``ideal`` is the upper bound ``bench.realistic`` draws)."""
 
 
 @dataclass(frozen=True)
@@ -98,7 +100,8 @@ def run_point(
         encoder,
         cam,
         display=Display(refresh_hz=refresh_hz),
-        sensor=SensorModel.preset("gen4-indoor", lux=lux),
+        sensor=SensorModel.preset(SENSOR, lux=lux),
+        optics=Optics.preset(SENSOR),
         seed=seed,
     )
     run = run_event_receiver(scene, duration_s)

@@ -187,6 +187,9 @@ PRESETS: dict[str, SensorModel] = {
     # period, and the event-rate controller below the USB link, so that the link never drops
     # runs of events (the controller's even thinning keeps most pixels' first events).
     "evk4-link": replace(_EVK4, name="evk4-link", refractory_us=500.0, erc_hz=60e6),
+    # For a moving camera, whose renderer has no photoreceptor low-pass: its lag at the
+    # screen's white (127 us) as a fixed latency instead.
+    "evk4-moving": replace(_EVK4, name="evk4-moving", photoreceptor_hz=0.0, latency_us=127.0),
 }
 
 
