@@ -72,6 +72,9 @@ class Point:
     """Per decoding mode: message bits over the time from the first frame read to the frame
     that completed it; 0 if it did not complete."""
     wrong_messages: dict[str, int]
+    frames_passed: dict[str, int]
+    """Per decoding mode: accepted frames whose Reed-Solomon code and CRC passed (framed
+    profiles; ``paper`` frames carry no check)."""
     raw_bps: float
     events_per_s: float
     """Events the camera delivered, per second of clip."""
@@ -129,9 +132,9 @@ def run_point(preset: str, profile: str, refresh_hz: float, px: float, seed: int
     scored = [e for e in errors if e is not None]
     n2 = enc.geometry.cells**2
     frame_s = enc.profile.data_every / refresh_hz
-    goodput, wrong = {}, {}
+    goodput, wrong, passed = {}, {}, {}
     for mode in MODES:
-        goodput[mode], wrong[mode] = _decode(enc, reads, mode, first_read, frame_s)
+        goodput[mode], wrong[mode], passed[mode] = _decode(enc, reads, mode, first_read, frame_s)
     readout = recording.readout
     made = max(recording.made, 1)
     return Point(
@@ -146,6 +149,7 @@ def run_point(preset: str, profile: str, refresh_hz: float, px: float, seed: int
         len(scored),
         goodput,
         wrong,
+        passed,
         raw_bps(enc.geometry.cells, refresh_hz, enc.profile.data_every),
         delivered / clip,
         recording.made / clip,
@@ -166,8 +170,9 @@ def _first_read(outputs: list) -> int | None:
 
 def _decode(
     enc: StreamEncoder, reads: list, mode: str, first_read: int | None, frame_s: float
-) -> tuple[float, int]:
-    """(goodput in bit/s, wrong messages) of the reads decoded in ``mode``."""
+) -> tuple[float, int, int]:
+    """(goodput in bit/s, wrong messages, frames whose Reed-Solomon code and CRC passed) of
+    the reads decoded in ``mode``."""
     profile = enc.profile
     if mode != "soft":
         profile = replace(profile, erasure_rounds=0)
@@ -176,15 +181,17 @@ def _decode(
     dec = StreamDecoder(
         profile=profile, cells=enc.geometry.cells, message_size=len(enc.message), name=enc.name
     )
-    wrong = 0
+    goodput, wrong, passed = 0.0, 0, 0
     for read in reads:
+        before = dec.verified_bits
         for msg in dec.push(read.bits, None if mode == "hard" else read.confidence):
             if msg.data != enc.message:
                 wrong += 1
-            elif first_read is not None:
+            elif first_read is not None and not goodput:
                 span = (read.t_us - first_read) / 1e6 + frame_s
-                return 8 * len(enc.message) / span, wrong
-    return 0.0, wrong
+                goodput = 8 * len(enc.message) / span
+        passed += dec.verified_bits > before
+    return goodput, wrong, passed
 
 
 # --- report ------------------------------------------------------------------------------------
@@ -196,18 +203,22 @@ def _kbps(x: float) -> str:
 
 def table(points: list[Point]) -> str:
     rows = [
-        "| camera | profile | Hz | px/cell | N | BER before FEC | goodput hard / threshold / "
-        "soft, kbit/s | raw kbit/s | events/s made -> delivered | dropped |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| camera | profile | Hz | px/cell | N | BER before FEC | frames passed hard / "
+        "threshold / soft, of read | goodput hard / threshold / soft, kbit/s | raw kbit/s | "
+        "events/s made -> delivered | dropped |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for p in sorted(points, key=lambda p: (p.preset, p.profile, p.refresh_hz, p.px_per_cell)):
         ber = "no frame" if p.ber is None else f"{100 * p.ber:.3f}%"
         good = " / ".join(_kbps(p.goodput_bps[m]) for m in MODES)
         if any(p.wrong_messages.values()):
             good += f" ({max(p.wrong_messages.values())} wrong)"
+        passed = "-"
+        if p.profile != "paper":
+            passed = " / ".join(str(p.frames_passed[m]) for m in MODES) + f" of {p.frames}"
         rows.append(
             f"| {p.preset} | {p.profile} | {p.refresh_hz:g} | {p.px_per_cell:g} | {p.cells} | "
-            f"{ber} | {good} | {_kbps(p.raw_bps)} | {p.made_per_s / 1e6:.0f} M -> "
+            f"{ber} | {passed} | {good} | {_kbps(p.raw_bps)} | {p.made_per_s / 1e6:.0f} M -> "
             f"{p.events_per_s / 1e6:.0f} M | {100 * p.dropped_share:.1f}% |"
         )
     return "\n".join(rows)
