@@ -240,6 +240,7 @@ def best(points: list[Point], preset: str, refresh_hz: float) -> Point | None:
 
 def plot(points: list[Point], path: Path) -> None:
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -264,19 +265,22 @@ def plot(points: list[Point], path: Path) -> None:
                 label = f"{profile}, {preset}"
                 ber = [np.nan if p.ber is None else max(100 * p.ber, 1e-4) for p in ps]
                 ax_ber.plot(x, ber, style, color=colours[profile], label=label, ms=4)
-                rate_k = [p.goodput_bps["soft"] / 1e3 for p in ps]
+                rate_k = [max(p.goodput_bps["soft"] / 1e3, 0.5) for p in ps]
                 ax_rate.plot(x, rate_k, style, color=colours[profile], label=label, ms=4)
-        ax_ber.plot([7, 10, 13], [1.0, 0.1, 1e-4], "k*", ms=12, label="paper (Sec. V-A)")
+        ax_ber.plot([7, 13], [1.0, 1e-4], "k*", ms=12, label="paper (Sec. V-A): ~1% at 7, 0 at 13")
         ax_ber.set_yscale("log")
         ax_ber.set_ylim(5e-5, 60)
         ax_ber.set_ylabel("BER before FEC [%] (0 drawn at 1e-4)")
         ax_ber.set_title(f"{rate:g} Hz display, still camera at 1.25 m")
         if rate == 60.0:
             ax_rate.plot([8], [PAPER_PEAK_BPS / 1e3], "k*", ms=12, label="paper, 114 kbit/s")
-        ax_rate.set_ylabel("verified goodput [kbit/s]")
+        ax_rate.set_ylabel("verified goodput [kbit/s] (0 drawn at 0.5)")
+        ax_rate.set_yscale("log")
+        ax_rate.set_ylim(bottom=0.4)
         ax_rate.set_xlabel("pixels per cell")
         ax_rate.set_xscale("log")
         ax_rate.set_xticks(PX_PER_CELL, [str(p) for p in PX_PER_CELL])
+        ax_rate.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         for ax in (ax_ber, ax_rate):
             ax.grid(alpha=0.3)
         ax_rate.legend(fontsize=7)
@@ -363,6 +367,17 @@ def report(points: list[Point]) -> str:
         "after the sensor's readout, its rate controller and the USB link.",
         "",
         "![BER and goodput against pixels per cell](realistic.png)",
+        "",
+        "Where our reader is better than the paper's on the same camera, the paper's receiver "
+        "(as its published code reads) approximates the locator from the tracked ring by an "
+        "affine scaling that ignores perspective, keeps a fixed-period frame clock it never "
+        "re-times, binarises a polarity surface normalised to the newest event anywhere on "
+        "the sensor at fixed levels, calls a cell 1 when 60% of its bilinearly warped pixels "
+        "are on, and ORs three scans, which turns noise into 0->1 errors. Ours maps every "
+        "burst through the full homography, re-fits the clock and the scan-out slope on every "
+        "frame, reads each cell as the share of its inner pixels (a fifth of each side left "
+        "out) that fired inside its row's gate, and fits the threshold to each frame's own "
+        "two clusters of densities.",
         "",
     ]
     for px, paper in PAPER_BER.items():
