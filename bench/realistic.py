@@ -90,6 +90,18 @@ class Point:
         return asdict(self)
 
 
+NO_READOUT = " without readout limits"
+"""Appended to a preset's name: the same camera with every readout stage off, which shows what
+the sensor's readout, its rate controller and the link cost."""
+
+
+def sensor_for(preset: str) -> SensorModel:
+    if preset.endswith(NO_READOUT):
+        base = SensorModel.preset(preset.removesuffix(NO_READOUT))
+        return replace(base, readout_hz=None, erc_hz=None, link_hz=None)
+    return SensorModel.preset(preset)
+
+
 def scene_for(preset: str, profile: str, refresh_hz: float, px: float, seed: int) -> Scene:
     cam = CameraModel.paper()
     cells = cells_for(px, cam.height)
@@ -103,7 +115,7 @@ def scene_for(preset: str, profile: str, refresh_hz: float, px: float, seed: int
         camera=cam,
         motion=StaticMotion(DISTANCE_M),
         display=Display(refresh_hz=refresh_hz),
-        sensor=SensorModel.preset(preset),
+        sensor=sensor_for(preset),
         optics=Optics.preset(preset),
         seed=seed,
     )
@@ -293,7 +305,12 @@ def plot(points: list[Point], path: Path) -> None:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--px", type=float, nargs="+", default=PX_PER_CELL)
-    parser.add_argument("--presets", nargs="+", default=PRESETS)
+    parser.add_argument(
+        "--presets",
+        nargs="+",
+        default=PRESETS,
+        help=f"sensor presets; a name ending in '{NO_READOUT}' turns the readout limits off",
+    )
     parser.add_argument("--profiles", nargs="+", default=PROFILES)
     parser.add_argument("--rates", type=float, nargs="+", default=RATES)
     parser.add_argument("--jobs", type=int, default=1)
@@ -395,8 +412,9 @@ def report(points: list[Point]) -> str:
                 f"- against the paper, evk4 at 60 Hz, {px:g} px per cell: BER before FEC {each} "
                 f"(the paper: {'~1%' if paper else '0'})"
             )
+    present = sorted({p.preset for p in points}, key=lambda n: (n not in PRESETS, n))
     for rate in RATES:
-        for preset in PRESETS:
+        for preset in present:
             b = best(points, preset, rate)
             if b is not None:
                 lines.append(
