@@ -291,12 +291,14 @@ def test_decode_cli_writes_message_trajectory_and_report(tmp_path, capsys):
     }
     files = list((tmp_path / "out" / "messages").iterdir())
     assert [f.read_bytes() for f in files] == [MESSAGE]
-    smoothed = np.loadtxt(tmp_path / "out" / "trajectory.tum")
-    assert len(smoothed) > 10
+    smoothed = np.loadtxt(tmp_path / "out" / "trajectory_all.tum")
+    verified = np.loadtxt(tmp_path / "out" / "trajectory.tum")
+    assert 10 < len(verified) <= len(smoothed)  # the verified ones: a still lock proves at once
+    assert np.isin(verified[:, 0], smoothed[:, 0]).all()
     # The tracker's own poses (a still camera's hardly move): at the same times.
     args = ["decode", str(path), "--scene", str(tmp_path / "scene.json"), "--cells", "20"]
     assert cli_main([*args, "--pose-smoothing-ms", "0", "--out", str(tmp_path / "raw")]) == 0
-    raw = np.loadtxt(tmp_path / "raw" / "trajectory.tum")
+    raw = np.loadtxt(tmp_path / "raw" / "trajectory_all.tum")
     assert np.array_equal(raw[:, 0], smoothed[:, 0])
     assert np.abs(raw[:, 1:4] - smoothed[:, 1:4]).max() < 1e-3
     code = cli_main([*args, "--pose-smoothing-ms", "-1", "--out", str(tmp_path / "bad")])
@@ -325,3 +327,26 @@ def test_decode_cli_reports_a_calibration_that_does_not_fit(tmp_path, capsys):
         ]
     )
     assert code == 2 and "calibration" in capsys.readouterr().err
+
+
+def test_poses_are_tentative_until_a_frame_proves_the_lock():
+    # Unsmoothed, the lock's own pose comes out before the buffered frames are read.
+    log, _ = _run(_scene("robust", STATIC, "gen4-indoor"), 0.6, pose_smoothing_us=0)
+    rx = log.receiver
+    verified = log.pose_verified
+    assert verified[0] is False and verified[-1] is True
+    assert verified == sorted(verified), "once proven, a lock's poses stay verified"
+    first_verified = log.pose_t[verified.index(True)]
+    assert first_verified - rx.stats.lock_times_us[0] <= 40_000  # a still lock proves at once
+
+
+def test_a_lock_whose_frames_never_pass_their_check_is_dropped_within_100_ms():
+    # Told robust while the screen sends fast: the marker is found, no frame ever verifies.
+    log, _ = _run(_scene("fast", STATIC, "gen4-indoor"), 1.0, profile="robust")
+    locks, drops = (
+        log.receiver.stats.lock_times_us,
+        [s.t_us for s in log.states if s.reason == "no frame passed its check since the lock"],
+    )
+    assert locks and drops
+    assert all(0 < drop - lock <= 110_000 for lock, drop in zip(locks, drops, strict=False))
+    assert not any(log.pose_verified), "no pose of an unproven lock is published as verified"

@@ -66,6 +66,7 @@ class DecodeLog:
         self.truth = truth
         self.pose_t: list[int] = []
         self.poses: list[np.ndarray] = []
+        self.pose_verified: list[bool] = []
         self.messages: list[MessageOutput] = []
         self.states: list[StateChange] = []
         self.frames = 0
@@ -77,6 +78,7 @@ class DecodeLog:
             if isinstance(o, PoseEstimate):
                 self.pose_t.append(o.t_us)
                 self.poses.append(o.T_world_cam)
+                self.pose_verified.append(o.verified)
             elif isinstance(o, FrameOutput) and o.accepted:
                 self.frames += 1
                 errors = None if self.truth is None else self.truth.errors(o.read.bits, o.read.t_us)
@@ -122,6 +124,7 @@ class DecodeLog:
             "bits_scored": self.bits,
             "pose_updates": st.pose_updates,
             "poses": len(self.poses),
+            "poses_verified": sum(self.pose_verified),
             "messages": [
                 {
                     "name": m.message.name,
@@ -139,13 +142,14 @@ class DecodeLog:
         }
 
     def write(self, out_dir: Path) -> dict:
-        """trajectory.tum, messages/<name>, report.json; returns the report."""
+        """trajectory.tum (the verified poses), trajectory_all.tum (the tentative ones too),
+        messages/<name>, report.json; returns the report."""
         out_dir.mkdir(parents=True, exist_ok=True)
-        write_tum(
-            out_dir / "trajectory.tum",
-            np.array(self.pose_t, np.int64),
-            np.array(self.poses).reshape(-1, 4, 4),
-        )
+        t_us = np.array(self.pose_t, np.int64)
+        poses = np.array(self.poses).reshape(-1, 4, 4)
+        verified = np.array(self.pose_verified, bool)
+        write_tum(out_dir / "trajectory.tum", t_us[verified], poses[verified])
+        write_tum(out_dir / "trajectory_all.tum", t_us, poses)
         msg_dir = out_dir / "messages"
         for m in self.messages:
             msg_dir.mkdir(exist_ok=True)
