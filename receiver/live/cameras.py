@@ -7,6 +7,7 @@ says which extra (or SDK) to install when it is missing.
 from __future__ import annotations
 
 import importlib
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -29,10 +30,16 @@ class LiveCamera:
     """A live sensor; ``chunks`` runs until the camera is unplugged or the daemon stops, and
     skips ahead whenever its consumer falls behind (``StayLive``)."""
 
-    def __init__(self, width: int, height: int, chunks: Iterator[np.ndarray]) -> None:
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        chunks: Iterator[np.ndarray],
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.width, self.height = width, height
         self._chunks = chunks
-        self._live = StayLive()
+        self._live = StayLive(clock=clock)
 
     @property
     def speed(self) -> float | None:
