@@ -3,12 +3,15 @@ a share of the ceiling that cannot exceed it."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from bench.receiver import SMALL, Case, _row, goodput_bps, run_case
+from bench.receiver import SMALL, Case, _passed_refreshes, _row, goodput_bps, run_case
+from eventocc.occ.frame_codec import FrameCodec
 from eventocc.occ.stream import StreamDecoder, StreamEncoder
 from eventocc.receiver.pipeline.config import ReceiverConfig
-from eventocc.receiver.pipeline.receiver import MessageOutput, Receiver
+from eventocc.receiver.pipeline.decoder import FrameRead
+from eventocc.receiver.pipeline.receiver import FrameOutput, MessageOutput, Receiver
 from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
 
 SENT = b"the message that was sent"
@@ -65,3 +68,21 @@ def test_goodput_never_exceeds_the_ceiling(duration_s):
     columns = _columns(_row(case, run_case(case, replays=1)))
     ceiling, goodput = float(columns[3]), float(columns[5])
     assert 0.5 * ceiling < goodput <= ceiling
+
+
+def test_goodput_share_counts_the_frames_that_failed():
+    # Every third data frame arrives garbled: a third of the shown frames did not pass.
+    encoder = StreamEncoder(bytes(range(200)) * 4, profile="robust", cells=16)
+    truth = FrameTruth(encoder, 60.0)
+    codec = FrameCodec(encoder.profile, 16)
+    shown = truth.data_refreshes(0, 1_000_000)
+    assert shown == [k for k in range(60) if encoder.is_data_frame(k)]
+    outputs = []
+    for i, k in enumerate(shown):
+        bits = encoder.payload_bits(k)
+        if i % 3 == 2:
+            bits = bits ^ np.eye(16, dtype=np.uint8) ^ 1  # all but a diagonal flipped
+        read = FrameRead(i, round(k * 1e6 / 60) + 2_000, bits, np.ones((16, 16)), 0.8, 100)
+        outputs.append(FrameOutput(read, True))
+    passed = _passed_refreshes(truth, codec, outputs)
+    assert passed == {k for i, k in enumerate(shown) if i % 3 != 2}
