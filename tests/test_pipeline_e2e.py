@@ -249,7 +249,9 @@ def test_decode_cli_writes_message_trajectory_and_report(tmp_path, capsys):
         ]
     )
     report = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert code == 0 and report["locked"] and report["messages"][0]["verified"]
+    assert code == 0 and report["locked"]
+    (message,) = report["messages"]  # checked in-band, and against the scene's message
+    assert message["verified"] and message["check"] == "sender's sha256" and message["matches_sent"]
     assert report["ber"] < 0.005  # N = 20 on this small sensor misreads a few bits (0.23%)
     assert report["link"] == {
         "profile": "robust",
