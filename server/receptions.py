@@ -3,11 +3,10 @@
 A *reception* is one message a receiver decoded in full: its bytes, their sha256 (computed
 again here: bytes that do not match the digest the receiver claims are refused), whether they
 hash to the digest their sender sent in-band, and the uploaded message with the same digest, if
-any. Poses are kept at the rate the receiver
-publishes them (decimated for the UI), so a trajectory survives a server restart. Each
-receiver numbers its reports; the server remembers the highest number it has stored per
-receiver, so a report replayed from the receiver's spool after a reconnect is acknowledged
-again but stored once.
+any. Poses are kept at the rate the receiver publishes them (decimated for the UI), so a
+trajectory survives a server restart. Each receiver numbers its reports; the server remembers
+the highest number it has stored per receiver, so a report replayed from the receiver's spool
+after a reconnect is acknowledged again but stored once.
 """
 
 from __future__ import annotations
