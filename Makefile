@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test test-slow lint bench bench-quick system-deps clean
+.PHONY: demo test test-slow lint bench bench-quick bench-stale system-deps clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,11 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m bench
+	$(BIN)/python -m bench.stale
+
+# Which sections of docs/BENCHMARKS.md are older than the code they measure.
+bench-stale: $(STAMP)
+	$(BIN)/python -m bench.stale
 
 bench-quick: $(STAMP)
 	$(BIN)/python -m bench --quick

@@ -66,16 +66,29 @@ class FrameStats(_Model):
     which carry no check."""
 
 
+_SHA256 = r"^[0-9a-f]{64}$"
+
+
 class MessageReport(_Model):
-    """A verified message; ``data_b64`` is checked against ``size`` and ``sha256`` on parsing."""
+    """A message received in full; ``data_b64`` is checked against ``size`` and ``sha256`` (the
+    receiver's digest of the bytes) on parsing, and against ``sender_sha256`` when there is one.
+    """
 
     type: Literal["message"] = "message"
     stream_id: Count
     name: str
     size: Count
-    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    sha256: str = Field(pattern=_SHA256)
     data_b64: str
     profile: str
+    sender_sha256: str | None = Field(default=None, pattern=_SHA256)
+    """The digest the sender sent in-band (framed profiles). None: nothing checked the bytes
+    (``paper`` sends no checksum; receivers before this field sent none either)."""
+
+    @property
+    def verified(self) -> bool:
+        """The bytes hash to what the sender sent (the parser refuses a mismatch)."""
+        return self.sender_sha256 is not None
 
     @model_validator(mode="after")
     def _data_matches(self) -> Self:
@@ -87,6 +100,8 @@ class MessageReport(_Model):
             raise ValueError(f"data_b64 holds {len(data)} bytes but size says {self.size}")
         if hashlib.sha256(data).hexdigest() != self.sha256:
             raise ValueError("data_b64 does not match sha256")
+        if self.sender_sha256 not in (None, self.sha256):
+            raise ValueError("data_b64 does not match the sender's sha256 (sender_sha256)")
         return self
 
     @property
@@ -102,6 +117,7 @@ class MessageReport(_Model):
             sha256=message.sha256,
             data_b64=base64.b64encode(message.data).decode(),
             profile=message.profile,
+            sender_sha256=message.sender_sha256,
         )
 
 

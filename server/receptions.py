@@ -1,12 +1,12 @@
 """What receivers sent us, kept in SQLite beside the message store (same file, own tables).
 
 A *reception* is one message a receiver decoded in full: its bytes, their sha256 (computed
-again here: bytes that do not match the digest the receiver claims are refused), and the
-uploaded message with the same digest, if any. Poses are kept at the rate the receiver
-publishes them (decimated for the UI), so a trajectory survives a server restart. Each
-receiver numbers its reports; the server remembers the highest number it has stored per
-receiver, so a report replayed from the receiver's spool after a reconnect is acknowledged
-again but stored once.
+again here: bytes that do not match the digest the receiver claims are refused), whether they
+hash to the digest their sender sent in-band, and the uploaded message with the same digest, if
+any. Poses are kept at the rate the receiver publishes them (decimated for the UI), so a
+trajectory survives a server restart. Each receiver numbers its reports; the server remembers
+the highest number it has stored per receiver, so a report replayed from the receiver's spool
+after a reconnect is acknowledged again but stored once.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ CREATE TABLE IF NOT EXISTS receptions (
     message_id TEXT,
     received   TEXT NOT NULL,
     data       BLOB NOT NULL,
+    verified   INTEGER,
     UNIQUE (receiver, seq)
 );
 CREATE TABLE IF NOT EXISTS receiver_poses (
@@ -48,7 +49,7 @@ CREATE TABLE IF NOT EXISTS receiver_poses (
     PRIMARY KEY (receiver, t_us)
 ) WITHOUT ROWID;
 """
-COLUMNS = "id, receiver, seq, name, sha256, size, goodput_bps, message_id, received"
+COLUMNS = "id, receiver, seq, name, sha256, size, goodput_bps, message_id, received, verified"
 
 PoseRow = tuple[int, float, float, float, float, float, float, float]
 """``(t_us, tx, ty, tz, qx, qy, qz, qw)``: a TUM row with the time in microseconds."""
@@ -76,6 +77,9 @@ class Reception:
     message_id: str | None
     """The uploaded message with the same sha256, if any."""
     received: datetime
+    verified: bool | None = None
+    """The bytes hash to the sha256 their sender sent in-band; False: nothing checked them
+    (``paper`` sends no checksum); None: stored before this was recorded."""
 
     @classmethod
     def from_row(cls, row: sqlite3.Row) -> Reception:
@@ -83,6 +87,7 @@ class Reception:
             **{
                 **dict(row),
                 "received": datetime.fromisoformat(row["received"]),
+                "verified": None if row["verified"] is None else bool(row["verified"]),
             }
         )
 
@@ -106,6 +111,9 @@ class ReceptionStore:
         self._db.execute("PRAGMA synchronous=NORMAL")
         with self._transaction() as db:
             db.executescript(SCHEMA)
+            columns = {r["name"] for r in db.execute("PRAGMA table_info(receptions)")}
+            if "verified" not in columns:  # a database from before the column
+                db.execute("ALTER TABLE receptions ADD COLUMN verified INTEGER")
 
     def close(self) -> None:
         with self._lock:
@@ -144,6 +152,7 @@ class ReceptionStore:
         claimed_sha256: str,
         goodput_bps: float | None,
         message_id: str | None,
+        verified: bool = False,
     ) -> Reception:
         """Store a finished message; a replay of the same (receiver, seq) returns the first.
 
@@ -162,11 +171,12 @@ class ReceptionStore:
             goodput_bps=goodput_bps,
             message_id=message_id,
             received=datetime.now(UTC),
+            verified=verified,
         )
         with self._transaction() as db:
             db.execute(
                 f"INSERT OR IGNORE INTO receptions ({COLUMNS}, data) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     reception.id,
                     receiver,
@@ -177,6 +187,7 @@ class ReceptionStore:
                     goodput_bps,
                     message_id,
                     reception.received.isoformat(),
+                    verified,
                     data,
                 ),
             )

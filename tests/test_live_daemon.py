@@ -6,7 +6,6 @@ import base64
 import hashlib
 import re
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -304,28 +303,33 @@ def test_health_carries_the_sources_speed(tmp_path, speed) -> None:
 
 
 class SlowPipeline(ScriptedPipeline):
-    """Takes twice a chunk's span to push it: a receiver at half real time."""
+    """Takes twice a chunk's span of the fake wall clock to push it: a receiver at half real
+    time."""
+
+    def __init__(self, wall) -> None:
+        super().__init__()
+        self.wall = wall
 
     def push(self, chunk: np.ndarray) -> list:
-        time.sleep(2 * (int(chunk["t"][-1]) - int(chunk["t"][0]) + 1) / 1e6)
+        self.wall.sleep(2 * (int(chunk["t"][-1]) - int(chunk["t"][0]) + 1) / 1e6)
         return super().push(chunk)
 
 
-def test_a_daemon_behind_a_live_camera_stays_live_and_says_so(tmp_path, caplog) -> None:
-    """In real time: 3 s of a camera's 10 ms chunks, each returned when complete."""
+def test_a_daemon_behind_a_live_camera_stays_live_and_says_so(tmp_path, caplog, wall) -> None:
+    """3 s of a camera's 10 ms chunks, each returned when complete, on a fake wall clock."""
+    start = wall.now
 
     def camera():
-        start = time.monotonic()
         for i in range(300):
-            time.sleep(max(start + (i + 1) / 100 - time.monotonic(), 0.0))
+            wall.now = max(wall.now, start + (i + 1) / 100)  # blocks until the chunk is done
             yield chunk(i * 10_000, (i + 1) * 10_000 - 1)
 
-    pipeline, sink = SlowPipeline(), ListSink()
-    daemon = Daemon(LiveCamera(64, 48, camera()), pipeline, sink, OutputFolder(tmp_path / "out"))
-    started = time.monotonic()
+    pipeline, sink = SlowPipeline(wall), ListSink()
+    source = LiveCamera(64, 48, camera(), clock=wall.clock)
+    daemon = Daemon(source, pipeline, sink, OutputFolder(tmp_path / "out"))
     with caplog.at_level("WARNING", logger="eventocc.receiver.live.sources"):
         daemon.run()
-    assert time.monotonic() - started < 3.0 + MAX_LAG_S + 0.3, "the lag stayed bounded"
+    assert wall.now - start <= 3.0 + MAX_LAG_S + 0.02, "the lag stayed bounded"
     assert 100 <= pipeline.chunks <= 200, "about half of the chunks were pushed"
     assert re.search(r"receiver at 0\.[3-6]\dx real time: .* skipped ahead", caplog.text)
     speeds = [h.source_speed for h in sink.of(HealthReport) if h.source_speed is not None]

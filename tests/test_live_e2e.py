@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -86,7 +87,8 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
         expect(page.locator("#pose-readout")).to_contain_text("distance", timeout=30_000)
         expect(page.locator("#tracking-state")).to_have_text("tracking", timeout=30_000)
         # Verified frames keep flowing after the message completed: goodput is not zero.
-        expect(page.locator("#goodput-value")).to_contain_text("kbit/s", timeout=30_000)
+        goodput = page.locator("#goodput-value")
+        expect(goodput).to_have_text(re.compile(r"^[1-9][\d.]* kbit/s$"), timeout=30_000)
         page.wait_for_timeout(1500)  # let the sparklines take a few samples
         page.screenshot(path=str(artifacts / "dashboard.png"), full_page=True)
         readout = page.locator("#pose-readout").text_content()
@@ -98,7 +100,9 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
     with urllib.request.urlopen(base_url + href) as response:
         assert response.read() == TEXT.encode()
     distance = float(readout.split("distance")[1].split()[0])
-    assert distance == pytest.approx(DISTANCE_M, rel=0.2), (
+    # A still camera's PnP pose is within a centimetre (test_pipeline_e2e); the readout has two
+    # decimals.
+    assert distance == pytest.approx(DISTANCE_M, abs=0.015), (
         f"the virtual camera stands {DISTANCE_M} m away, the dashboard says {readout}"
     )
     assert (tmp_path / "out" / "messages" / f"{digest[:12]}-hello.txt").read_text() == TEXT

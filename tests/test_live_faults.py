@@ -123,8 +123,8 @@ def test_server_killed_and_restarted_mid_stream_loses_nothing(server_process, tm
         for i in range(3, 6):  # the server is away: these wait in the spool
             publisher.publish(message(i), durable=True)
             publisher.publish(pose(i * 10_000), durable=True)
-        time.sleep(0.3)
-        assert len(spool) == 6 and not publisher.stats.connected
+        wait_until(lambda: not publisher.stats.connected, what="the publisher to see it gone")
+        assert len(spool) == 6
 
         server_process.start()
         wait_until(lambda: len(spool) == 0, what="the spool to drain after the restart")
@@ -234,12 +234,12 @@ def test_publisher_needs_a_websocket_url(tmp_path, url: str) -> None:
     spool.close()
 
 
-def test_close_gives_up_on_an_absent_server_within_its_timeout(tmp_path) -> None:
+def test_close_gives_up_on_an_absent_server(tmp_path) -> None:
+    # A close that waited for the server forever would hang here (the suite's timeout).
     spool = Spool(tmp_path / "spool.db")
     publisher = Publisher(f"ws://127.0.0.1:{free_port()}", spool, backoff_s=(0.05, 0.1)).start()
     publisher.publish(message(1), durable=True)
-    started = time.monotonic()
     publisher.close(drain_timeout_s=0.5)
-    assert time.monotonic() - started < 5
+    assert not publisher.stats.connected
     assert len(spool) == 1, "undelivered reports stay in the spool for the next run"
     spool.close()

@@ -9,6 +9,7 @@ import hashlib
 import json
 import os
 import socket
+import sqlite3
 import urllib.error
 import urllib.request
 
@@ -18,7 +19,7 @@ from websockets.exceptions import ConnectionClosed
 
 from eventocc.occ.report import Hello, MessageReport, PoseReport, SurfaceReport, TrackingState
 from eventocc.occ.stream import ReceivedMessage
-from eventocc.server.receptions import ReceptionStore
+from eventocc.server.receptions import SCHEMA, ReceptionStore
 
 TOKEN = "s3cret-token"
 TEXT = b"received over the air"
@@ -45,8 +46,8 @@ def upload(base_url: str, data: bytes, name: str = "note.txt") -> dict:
 
 
 def message_report(data: bytes = TEXT, name: str = "note.txt") -> MessageReport:
-    digest = hashlib.sha256(data).hexdigest()
-    return MessageReport.of(ReceivedMessage(name, data, digest, 7, "robust"))
+    digest = hashlib.sha256(data).hexdigest()  # as the robust profile's sender sent it in-band
+    return MessageReport.of(ReceivedMessage(name, data, digest, 7, "robust", digest))
 
 
 def pose(t_us: int) -> PoseReport:
@@ -123,7 +124,7 @@ def test_finished_message_is_stored_verified_acked_and_downloadable(serve_app) -
     assert len(receptions) == 1
     (reception,) = receptions
     assert reception["sha256"] == hashlib.sha256(TEXT).hexdigest()
-    assert reception["message_id"] == uploaded["id"]
+    assert reception["message_id"] == uploaded["id"] and reception["verified"] is True
     assert reception["receiver"] == "rx-1" and reception["name"] == "note.txt"
     assert get(base_url, reception["url"]) == TEXT
     assert json.loads(get(base_url, f"/api/receptions/{reception['id']}"))["size"] == len(TEXT)
@@ -336,3 +337,33 @@ def test_store_refuses_bytes_that_do_not_match_their_digest(tmp_path) -> None:
             message_id=None,
         )
     assert store.receptions() == [] and store.register("rx") == 0
+
+
+def test_store_keeps_whether_the_sender_checked_the_bytes(tmp_path) -> None:
+    path = tmp_path / "db.sqlite"
+    with sqlite3.connect(path) as db:  # a database from before the column
+        db.executescript(SCHEMA.replace("    verified   INTEGER,\n", ""))
+        db.execute("INSERT INTO receivers VALUES ('rx', 'now', 'now', 1)")
+        db.execute(
+            "INSERT INTO receptions (id, receiver, seq, name, sha256, size, received, data) "
+            "VALUES ('000000000001', 'rx', 1, 'old', ?, 1, '2026-01-01T00:00:00+00:00', x'61')",
+            (hashlib.sha256(b"a").hexdigest(),),
+        )
+    store = ReceptionStore(path)
+    for seq, verified in ((2, True), (3, False)):
+        data = bytes([seq])
+        store.add(
+            receiver="rx",
+            seq=seq,
+            name=str(seq),
+            data=data,
+            claimed_sha256=hashlib.sha256(data).hexdigest(),
+            goodput_bps=None,
+            message_id=None,
+            verified=verified,
+        )
+    assert {r.name: r.verified for r in store.receptions()} == {
+        "old": None,
+        "2": True,
+        "3": False,
+    }

@@ -201,8 +201,10 @@ function drawMessages() {
       link.download = r.name || r.id;
       const facts = document.createElement("span");
       const speed = r.goodput_bps ? `, ${formatRate(r.goodput_bps, "bit/s")}` : "";
-      facts.className = r.message_id ? "verified" : "muted";
-      facts.textContent = `${r.size} B, sha256 ${r.message_id ? "matches upload" : "ok"}${speed}`;
+      // Matching an upload or the sender's in-band sha256 checks the bytes; paper sends none.
+      const check = r.message_id ? "sha256 matches upload" : r.verified ? "sha256 matches sender's" : "unchecked";
+      facts.className = r.message_id || r.verified ? "verified" : "muted";
+      facts.textContent = `${r.size} B, ${check}${speed}`;
       li.append(link, facts);
       return li;
     }),

@@ -87,7 +87,8 @@ def hand_held_scene(
 @dataclass(frozen=True)
 class EventRun:
     report: dict
-    """``DecodeLog.report()``: BER, goodput, lock, frames, messages."""
+    """``DecodeLog.report()``: BER, goodput, lock, frames, messages (each compared with the
+    message sent: ``matches_sent``)."""
     pose_t_us: np.ndarray
     poses: np.ndarray
     """(n, 4, 4) estimated T_world_cam at ``pose_t_us``."""
@@ -107,10 +108,10 @@ class EventRun:
         return held_s(self.pose_t_us, POSE_GAP_US, off > WRONG_M if wrong else None)
 
     def goodput_bps(self, message_bits: int, frame_s: float) -> float:
-        """The first verified message's bits over the time its frames took to stream, from the
-        first frame read to the one that completed it (the paper's throughput: bits recovered
-        per second of streaming); 0 if no message completed."""
-        done = [m for m in self.report["messages"] if m["verified"]]
+        """The first message that matches the one sent, its bits over the time its frames took
+        to stream, from the first frame read to the one that completed it (the paper's
+        throughput: bits recovered per second of streaming); 0 if none completed."""
+        done = [m for m in self.report["messages"] if m["matches_sent"]]
         if not done or self.first_read_s is None:
             return 0.0
         return message_bits / (done[0]["t_s"] - self.first_read_s + frame_s)

@@ -164,7 +164,17 @@ def _summarise(report: dict) -> None:
     if report["ber"] is not None:
         print(f"BER before FEC {report['ber']:.2e}")
     for m in report["messages"]:
-        print(f"message {m['name'] or '(unnamed)'}: {m['size']} bytes, sha256 {m['sha256']}")
+        if m["check"] == "unchecked":
+            check = "unchecked: the paper profile sends no checksum"
+        else:
+            check = "verified" if m["verified"] else "does NOT match the sender's sha256"
+        if "matches_sent" in m:
+            check += (
+                "; matches the scene's message" if m["matches_sent"] else "; NOT the message sent"
+            )
+        print(
+            f"message {m['name'] or '(unnamed)'}: {m['size']} bytes, sha256 {m['sha256']} ({check})"
+        )
     if report["realtime_factor"] is not None:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in sorted(report["cpu_s"].items()))
         print(f"real-time factor {report['realtime_factor']:.2f} (CPU s per stage: {stages})")

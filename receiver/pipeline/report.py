@@ -1,13 +1,14 @@
 """What a decoding run produced: poses, frames, messages, and the JSON report about them.
 
 ``DecodeLog`` collects a ``Receiver``'s outputs; with a ``FrameTruth`` (from a simulator scene)
-it also scores every frame's bits against what the screen really showed.
+it also scores every frame's bits against what the screen really showed, and every message
+against the bytes really sent.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,12 @@ class FrameTruth:
 
     def errors(self, bits: np.ndarray, t_us: int) -> int | None:
         """Bit errors of a frame read at ``t_us``, or None if it matches no data refresh."""
+        matched = self.match(bits, t_us)
+        return None if matched is None else matched[1]
+
+    def match(self, bits: np.ndarray, t_us: int) -> tuple[int, int] | None:
+        """(refresh, bit errors) of the data refresh a frame read at ``t_us`` matches best, or
+        None if it matches no data refresh."""
         k = self.start_refresh + int(np.floor(t_us * self.refresh_hz / 1e6))
         ks = list(range(max(0, k - 2), k + 2))
         if self.encoder.profile.data_every == 2:
@@ -57,7 +64,15 @@ class FrameTruth:
         if not ks:
             return None
         i, errors = best_alignment(bits, [self.sent(j) for j in ks])
-        return errors if self.encoder.is_data_frame(ks[i]) else None
+        return (ks[i], errors) if self.encoder.is_data_frame(ks[i]) else None
+
+    def data_refreshes(self, from_us: int, to_us: int) -> list[int]:
+        """The data refreshes shown whole between ``from_us`` and ``to_us`` (stream time, as
+        the frames' ``t_us``)."""
+        period_us = 1e6 / self.refresh_hz
+        first = self.start_refresh + math.ceil(from_us / period_us)
+        last = self.start_refresh + math.floor(to_us / period_us) - 1
+        return [k for k in range(max(first, 0), last + 1) if self.encoder.is_data_frame(k)]
 
 
 class DecodeLog:
@@ -125,21 +140,29 @@ class DecodeLog:
             "pose_updates": st.pose_updates,
             "poses": len(self.poses),
             "poses_verified": sum(self.pose_verified),
-            "messages": [
-                {
-                    "name": m.message.name,
-                    "size": len(m.message.data),
-                    "sha256": m.message.sha256,
-                    "verified": hashlib.sha256(m.message.data).hexdigest() == m.message.sha256,
-                    "t_s": (m.t_us - start) / 1e6,
-                }
-                for m in self.messages
-            ],
+            "messages": [self._message(m, start) for m in self.messages],
             "goodput_bps": delivered * 8 / duration_s,
             "stream_progress": {str(k): v for k, v in self.receiver.stream.progress().items()},
             "cpu_s": cpu,
             "realtime_factor": duration_s / cpu_total if cpu_total else None,
         }
+
+    def _message(self, m: MessageOutput, start_us: int) -> dict:
+        """A delivered message: ``verified`` only if its bytes hash to the sha256 its sender sent
+        (``check`` says which check ran: none for ``paper``); with the truth, ``matches_sent``
+        compares it with the bytes really sent."""
+        message = m.message
+        entry = {
+            "name": message.name,
+            "size": len(message.data),
+            "sha256": message.sha256,
+            "verified": message.verified,
+            "check": "unchecked" if message.sender_sha256 is None else "sender's sha256",
+            "t_s": (m.t_us - start_us) / 1e6,
+        }
+        if self.truth is not None:
+            entry["matches_sent"] = message.data == self.truth.encoder.message
+        return entry
 
     def write(self, out_dir: Path) -> dict:
         """trajectory.tum (the verified poses), trajectory_all.tum (the tentative ones too),

@@ -162,6 +162,7 @@ async def store_reception(
         claimed_sha256=report.sha256,
         goodput_bps=goodput,
         message_id=uploaded,
+        verified=report.verified,
     )
     live.hub.forget(f"{receiver}:progress:{report.stream_id}")
     log.info(
@@ -169,7 +170,8 @@ async def store_reception(
         reception.name,
         reception.size,
         receiver,
-        "verified" if uploaded else "verified; no upload has these bytes",
+        ("verified against the sender's sha256" if report.verified else "unchecked")
+        + ("" if uploaded else "; no upload has these bytes"),
     )
     return {"type": "reception", **ReceptionPublic.of(reception).model_dump(mode="json")}
 

@@ -26,6 +26,9 @@ class ReceptionPublic(BaseModel):
     goodput_bps: float | None
     message_id: str | None
     received: datetime
+    verified: bool | None
+    """The bytes hash to the sha256 their sender sent in-band; False: unchecked (``paper``);
+    None: stored before this was recorded."""
     url: str
 
     @classmethod
