@@ -15,6 +15,7 @@ from fastapi.staticfiles import StaticFiles
 from eventocc import __version__
 from eventocc.server.api import api_router
 from eventocc.server.api.encoding import EncoderCache
+from eventocc.server.api.errors import add_error_handlers
 from eventocc.server.api.state import LiveState
 from eventocc.server.hub import Hub
 from eventocc.server.receptions import ReceptionStore
@@ -53,6 +54,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.store = MessageStore(settings.db_path)
     app.state.encoders = EncoderCache(app.state.store, settings.encoder_cache_size)
     app.include_router(api_router)
+    add_error_handlers(app)
     _add_pages(app, WEB_DIR)
     return app
 

@@ -11,11 +11,10 @@ from starlette.requests import HTTPConnection
 
 from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
 from eventocc.server.api.encoding import EncoderCache
+from eventocc.server.api.schemas import MESSAGE_ID_PATTERN
 from eventocc.server.api.state import LiveState
 from eventocc.server.settings import Settings
 from eventocc.server.store import MessageStore, StoredMessage
-
-MESSAGE_ID_PATTERN = r"^[0-9a-f]{12}$"
 
 
 def get_store(request: Request) -> MessageStore:
