@@ -12,6 +12,7 @@ again but stored once.
 from __future__ import annotations
 
 import hashlib
+import math
 import secrets
 import sqlite3
 import threading
@@ -52,6 +53,10 @@ COLUMNS = "id, receiver, seq, name, sha256, size, goodput_bps, message_id, recei
 
 PoseRow = tuple[int, float, float, float, float, float, float, float]
 """``(t_us, tx, ty, tz, qx, qy, qz, qw)``: a TUM row with the time in microseconds."""
+
+
+def _finite(value: float | None) -> bool:
+    return value is not None and math.isfinite(value)
 
 
 def _mark(db: sqlite3.Connection, receiver: str, seq: int) -> None:
@@ -216,17 +221,20 @@ class ReceptionStore:
             )
             _mark(db, receiver, seq)
 
-    def poses(
-        self, receiver: str
-    ) -> list[tuple[int, float, float, float, float, float, float, float]]:
-        """All kept poses of ``receiver`` in time order, as TUM rows with t in microseconds."""
+    def poses(self, receiver: str) -> list[PoseRow] | None:
+        """All kept poses of ``receiver`` in time order, as TUM rows with t in microseconds;
+        None for a receiver that never connected."""
         with self._transaction() as db:
+            if db.execute("SELECT 1 FROM receivers WHERE id = ?", (receiver,)).fetchone() is None:
+                return None
             rows = db.execute(
                 "SELECT t_us, tx, ty, tz, qx, qy, qz, qw FROM receiver_poses "
                 "WHERE receiver = ? ORDER BY t_us",
                 (receiver,),
             ).fetchall()
-        return [tuple(row) for row in rows]
+        # Servers before ``/ws/receiver`` took strict JSON kept non-finite poses (a NaN reads
+        # back as NULL): not poses.
+        return [tuple(row) for row in rows if all(_finite(v) for v in row[1:])]
 
     def totals(self) -> tuple[int, int]:
         """(receptions, their bytes), for the metrics."""

@@ -14,70 +14,22 @@ import urllib.request
 
 import pytest
 from websockets.asyncio.client import connect
-from websockets.exceptions import ConnectionClosed
 
-from eventocc.occ.report import Hello, MessageReport, PoseReport, SurfaceReport, TrackingState
-from eventocc.occ.stream import ReceivedMessage
+from eventocc.occ.report import Hello, SurfaceReport
 from eventocc.server.receptions import ReceptionStore
-
-TOKEN = "s3cret-token"
-TEXT = b"received over the air"
-
-
-def ws_url(base_url: str, path: str) -> str:
-    return "ws" + base_url.removeprefix("http") + path
-
-
-def get(base_url: str, path: str) -> bytes:
-    with urllib.request.urlopen(base_url + path, timeout=5) as response:
-        return response.read()
-
-
-def upload(base_url: str, data: bytes, name: str = "note.txt") -> dict:
-    request = urllib.request.Request(
-        f"{base_url}/api/messages?name={name}",
-        data=data,
-        headers={"Content-Type": "application/octet-stream", "Authorization": f"Bearer {TOKEN}"},
-        method="POST",
-    )
-    with urllib.request.urlopen(request, timeout=5) as response:
-        return json.load(response)
-
-
-def message_report(data: bytes = TEXT, name: str = "note.txt") -> MessageReport:
-    digest = hashlib.sha256(data).hexdigest()
-    return MessageReport.of(ReceivedMessage(name, data, digest, 7, "robust"))
-
-
-def pose(t_us: int) -> PoseReport:
-    return PoseReport(
-        t_us=t_us,
-        position=(0.1, 0.2, -0.5),
-        quaternion_xyzw=(0.0, 0.0, 0.0, 1.0),
-        state=TrackingState.TRACKING,
-    )
-
-
-def envelope(seq: int | None, report) -> str:
-    return json.dumps({"seq": seq, "report": json.loads(report.model_dump_json())})
-
-
-async def open_receiver(base_url: str, receiver_id: str = "rx-1", token: str | None = TOKEN):
-    ws = await connect(ws_url(base_url, "/ws/receiver"))
-    await ws.send(Hello(receiver_id=receiver_id, token=token).model_dump_json())
-    return ws, json.loads(await ws.recv())
-
-
-async def close_code(base_url: str, first: str, then: str | None = None) -> tuple[int, str]:
-    async with connect(ws_url(base_url, "/ws/receiver")) as ws:
-        await ws.send(first)
-        if then is not None:
-            await ws.recv()  # welcome
-            await ws.send(then)
-        with pytest.raises(ConnectionClosed) as closed:
-            while True:
-                await asyncio.wait_for(ws.recv(), 5)
-    return closed.value.rcvd.code, closed.value.rcvd.reason
+from tests.live_clients import (
+    RX_1,
+    TEXT,
+    TOKEN,
+    close_code,
+    envelope,
+    get,
+    message_report,
+    open_receiver,
+    pose,
+    upload,
+    ws_url,
+)
 
 
 @pytest.mark.parametrize(
@@ -124,7 +76,7 @@ def test_finished_message_is_stored_verified_acked_and_downloadable(serve_app) -
     (reception,) = receptions
     assert reception["sha256"] == hashlib.sha256(TEXT).hexdigest()
     assert reception["message_id"] == uploaded["id"]
-    assert reception["receiver"] == "rx-1" and reception["name"] == "note.txt"
+    assert reception["receiver"] == RX_1 and reception["name"] == "note.txt"
     assert get(base_url, reception["url"]) == TEXT
     assert json.loads(get(base_url, f"/api/receptions/{reception['id']}"))["size"] == len(TEXT)
 
@@ -143,7 +95,7 @@ def test_reconnecting_receiver_learns_what_was_stored(serve_app) -> None:
         return welcome["last_seq"]
 
     assert asyncio.run(scenario()) == 3
-    tum = get(base_url, "/api/receivers/rx-1/trajectory").decode().splitlines()
+    tum = get(base_url, f"/api/receivers/{RX_1}/trajectory").decode().splitlines()
     assert tum[1:] == [
         f"0.0{i}0000 0.100000000 0.200000000 -0.500000000 0.000000000 0.000000000 "
         "0.000000000 1.000000000"
@@ -196,9 +148,9 @@ def test_dashboards_see_receivers_poses_and_receptions(serve_app) -> None:
     seen = asyncio.run(scenario())
     kinds = [update["type"] for update in seen]
     assert kinds == ["receivers", "pose", "reception", "surface"]
-    assert seen[0]["receivers"][0]["receiver_id"] == "rx-1"
+    assert seen[0]["receivers"][0]["receiver_id"] == RX_1
     assert "token" not in json.dumps(seen[0]), "a receiver's token must never reach viewers"
-    assert seen[1]["receiver"] == "rx-1" and seen[1]["position"] == [0.1, 0.2, -0.5]
+    assert seen[1]["receiver"] == RX_1 and seen[1]["position"] == [0.1, 0.2, -0.5]
     assert seen[2]["url"].startswith("/api/receptions/")
 
 

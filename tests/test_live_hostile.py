@@ -1,0 +1,187 @@
+"""Hostile input to the live routes over real websockets: frames outside the protocol, numbers
+JSON cannot hold, bursts of reports.
+None of it may answer with a traceback, reach the dashboards or touch another receiver."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import urllib.error
+
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+from eventocc.occ.report import HealthReport, Hello, TrackingState
+from tests.live_clients import (
+    RX_1,
+    TOKEN,
+    ServerLog,
+    close_code,
+    envelope,
+    get,
+    open_receiver,
+    pose,
+    strict_json,
+    ws_url,
+)
+
+HELLO = Hello(receiver_id="rx-1", token=TOKEN).model_dump_json()
+POSE = json.loads(pose(1).model_dump_json())
+
+
+def pose_with(**fields: object) -> str:
+    """A pose report's JSON with some fields replaced by raw JSON text."""
+    text = json.dumps({"seq": 1, "report": {**POSE, **dict.fromkeys(fields, "@")}})
+    for value in fields.values():
+        text = text.replace('"@"', str(value), 1)
+    return text
+
+
+# --- frames outside the protocol ---------------------------------------------------------------
+MALFORMED = {
+    "binary frame": (b"\x00\x01", 1003, "not binary"),
+    "200k nested brackets": ("[" * 200_000 + "]" * 200_000, 1007, "expected"),
+    "seq past 64 bits": (envelope(2**63, pose(1)), 1007, "seq must be an integer"),
+    "seq a boolean": (envelope(True, pose(1)), 1007, "seq must be an integer"),
+    "seq a float": (envelope(1.0, pose(1)), 1007, "seq must be an integer"),
+    "NaN in a pose": (pose_with(position="[NaN, 0, 0]"), 1007, "NaN is not JSON"),
+    "Infinity in a pose": (pose_with(position="[0, -Infinity, 0]"), 1007, "is not JSON"),
+    "a number past any float": (pose_with(position="[1e400, 0, 0]"), 1007, "out of range"),
+}
+
+
+@pytest.mark.parametrize("case", MALFORMED.values(), ids=MALFORMED.keys())
+def test_a_frame_outside_the_protocol_closes_with_a_reason(serve_app, case) -> None:
+    base_url, app = serve_app(token=TOKEN)
+    frame, code, reason = case
+    with ServerLog() as server_log:
+        closed_with = asyncio.run(close_code(base_url, HELLO, frame))
+    assert closed_with[0] == code and reason in closed_with[1]
+    assert server_log.errors() == []
+    assert app.state.live.receptions.poses(RX_1) == []
+
+
+def test_a_number_past_64_bits_fails_the_schema_and_is_acked(serve_app) -> None:
+    base_url, app = serve_app(token=TOKEN)
+
+    async def scenario() -> dict:
+        ws, _ = await open_receiver(base_url)
+        await ws.send(pose_with(t_us=2**70))
+        ack = json.loads(await ws.recv())
+        await ws.close()
+        return ack
+
+    with ServerLog() as server_log:
+        assert asyncio.run(scenario()) == {"type": "ack", "seq": 1}
+    assert server_log.errors() == []
+    assert app.state.live.reports_rejected == 1
+    assert app.state.live.receptions.poses(RX_1) == []
+
+
+def test_no_dashboard_ever_gets_a_number_json_cannot_hold(serve_app) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+    hostile = [pose_with(position="[NaN, 0, 0]"), pose_with(quaternion_xyzw="[0, 0, 0, 1e999]")]
+
+    async def scenario() -> list[object]:
+        async with connect(ws_url(base_url, "/ws/dashboard")) as dash:
+            for frame in hostile:
+                await close_code(base_url, HELLO, frame)
+            ws, _ = await open_receiver(base_url)
+            await ws.send(envelope(7, pose(7)))
+            await ws.recv()
+            await ws.close()
+            updates = []
+            while not updates or updates[-1].get("t_us") != 7:
+                updates.append(strict_json(await asyncio.wait_for(dash.recv(), 5)))
+            return updates
+
+    updates = asyncio.run(scenario())
+    assert [u["t_us"] for u in updates if u["type"] == "pose"] == [7]
+    tum = get(base_url, f"/api/receivers/{RX_1}/trajectory").decode().splitlines()
+    assert len(tum) == 2 and tum[1].startswith("0.000007 ")
+
+
+def test_binary_frames_neither_break_the_transmitter_nor_the_dashboard_socket(serve_app) -> None:
+    base_url, _ = serve_app()
+
+    async def scenario() -> tuple[int, dict]:
+        async with connect(ws_url(base_url, "/ws/dashboard")) as dash:
+            await dash.send(b"\x00")  # viewers send nothing we need: ignored
+            async with connect(ws_url(base_url, "/ws/transmitter")) as tx:
+                await tx.send(b"\x00")
+                with pytest.raises(ConnectionClosed) as closed:
+                    await asyncio.wait_for(tx.recv(), 5)
+            async with connect(ws_url(base_url, "/ws/transmitter")) as tx:
+                await tx.send(json.dumps({"frame_index": 3}))
+            while (update := json.loads(await asyncio.wait_for(dash.recv(), 5)))["type"] != (
+                "transmitter"
+            ):
+                pass
+            return closed.value.rcvd.code, update
+
+    with ServerLog() as server_log:
+        code, update = asyncio.run(scenario())
+    assert code == 1003 and update["frame_index"] == 3
+    assert server_log.errors() == []
+
+
+@pytest.mark.parametrize(
+    "status",
+    [
+        {"profile": "bogus", "cells": 16},
+        {"profile": "robust", "cells": 1},
+        {"refresh_hz": 1e-9},
+        {"profile": "robust", "cells": 8},
+    ],
+)
+def test_a_status_no_receiver_can_follow_is_refused_over_the_websocket(serve_app, status) -> None:
+    base_url, _ = serve_app()
+    good = {"profile": "fast", "cells": 24, "refresh_hz": 60.0, "frame_index": 5}
+
+    async def scenario() -> dict:
+        async with connect(ws_url(base_url, "/ws/transmitter")) as tx:
+            await tx.send(json.dumps(good))
+            await tx.send(json.dumps(status))
+            return json.loads(await asyncio.wait_for(tx.recv(), 5))
+
+    with ServerLog() as server_log:
+        error = asyncio.run(scenario())
+    assert error["type"] == "error" and error["detail"][0]["msg"]
+    latest = json.loads(get(base_url, "/api/transmitter/status"))
+    assert {k: latest[k] for k in good} == good, "the last good status stands"
+    assert server_log.errors() == []
+
+
+# --- receivers -------------------------------------------------------------------------------
+def test_the_trajectory_of_a_receiver_never_seen_is_404(serve_app) -> None:
+    base_url, _ = serve_app()
+    with pytest.raises(urllib.error.HTTPError) as missing:
+        get(base_url, "/api/receivers/0123456789abcdef/trajectory")
+    assert missing.value.code == 404
+    assert "no receiver" in json.loads(missing.value.read())["detail"]
+
+
+# --- bursts ------------------------------------------------------------------------------------
+def test_a_burst_of_reports_evicts_no_healthy_dashboard(serve_app) -> None:
+    base_url, app = serve_app(token=TOKEN)
+    burst = 10_000
+    health = [
+        envelope(None, HealthReport(cpu_load=i, events_per_s=0, state=TrackingState.IDLE))
+        for i in range(burst)
+    ]
+
+    async def scenario() -> float:
+        async with connect(ws_url(base_url, "/ws/dashboard"), max_queue=None) as dash:
+            ws, _ = await open_receiver(base_url)
+            for text in health:  # all at once: the server finds them already buffered
+                await ws.send(text)
+            while (update := json.loads(await asyncio.wait_for(dash.recv(), 10))).get(
+                "cpu_load"
+            ) != burst - 1:
+                pass
+            await ws.close()
+            return update["cpu_load"]
+
+    assert asyncio.run(scenario()) == burst - 1
+    assert app.state.live.hub.evicted == 0
