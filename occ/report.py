@@ -42,8 +42,21 @@ class TrackingState(StrEnum):
 class Hello(_Model):
     type: Literal["hello"] = "hello"
     receiver_id: str = Field(min_length=1, max_length=128)
+    """The receiver's own secret name (the daemon draws 16 random hex digits once per output
+    folder): presenting it again is what makes a reconnecting receiver the same one, so the
+    server never shows it; it shows ``public_id``."""
     token: str | None = None
     version: int = PROTOCOL_VERSION
+
+    @property
+    def public_id(self) -> str:
+        return public_receiver_id(self.receiver_id)
+
+
+def public_receiver_id(receiver_id: str) -> str:
+    """The name the server shows for the receiver that says ``receiver_id`` in its Hello: a
+    digest, so that seeing it does not let anyone speak as that receiver."""
+    return hashlib.sha256(f"eventocc receiver {receiver_id}".encode()).hexdigest()[:16]
 
 
 class PoseReport(_Model):

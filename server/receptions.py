@@ -6,7 +6,8 @@ uploaded message with the same digest, if any. Poses are kept at the rate the re
 publishes them (decimated for the UI), so a trajectory survives a server restart. Each
 receiver numbers its reports; the server remembers the highest number it has stored per
 receiver, so a report replayed from the receiver's spool after a reconnect is acknowledged
-again but stored once.
+again but stored once. Receivers are kept under their public id
+(``eventocc.occ.report.public_receiver_id``), never under the secret one they connect with.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+
+from eventocc.occ.report import public_receiver_id
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS receivers (
@@ -49,6 +52,10 @@ CREATE TABLE IF NOT EXISTS receiver_poses (
     PRIMARY KEY (receiver, t_us)
 ) WITHOUT ROWID;
 """
+SCHEMA_VERSION = 1
+"""``PRAGMA user_version``: 0 kept receivers under the secret id they connect with, 1 under
+their public id."""
+RECEIVER_COLUMNS = (("receivers", "id"), ("receptions", "receiver"), ("receiver_poses", "receiver"))
 COLUMNS = "id, receiver, seq, name, sha256, size, goodput_bps, message_id, received"
 
 PoseRow = tuple[int, float, float, float, float, float, float, float]
@@ -57,6 +64,16 @@ PoseRow = tuple[int, float, float, float, float, float, float, float]
 
 def _finite(value: float | None) -> bool:
     return value is not None and math.isfinite(value)
+
+
+def _keep_public_ids(db: sqlite3.Connection) -> None:
+    """Rename every receiver kept under its secret id to its public id."""
+    for (secret,) in db.execute("SELECT id FROM receivers").fetchall():
+        for table, column in RECEIVER_COLUMNS:
+            db.execute(
+                f"UPDATE {table} SET {column} = ? WHERE {column} = ?",
+                (public_receiver_id(secret), secret),
+            )
 
 
 def _mark(db: sqlite3.Connection, receiver: str, seq: int) -> None:
@@ -111,6 +128,9 @@ class ReceptionStore:
         self._db.execute("PRAGMA synchronous=NORMAL")
         with self._transaction() as db:
             db.executescript(SCHEMA)
+            if db.execute("PRAGMA user_version").fetchone()[0] < 1:
+                _keep_public_ids(db)
+            db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
 
     def close(self) -> None:
         with self._lock:

@@ -13,11 +13,18 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from eventocc.occ.report import Hello, MessageReport, PoseReport, TrackingState
+from eventocc.occ.report import (
+    Hello,
+    MessageReport,
+    PoseReport,
+    TrackingState,
+    public_receiver_id,
+)
 from eventocc.occ.stream import ReceivedMessage
 
 TOKEN = "s3cret-token"
-RX_1 = "rx-1"
+RX_1 = public_receiver_id("rx-1")
+"""What the server shows of the receiver whose secret id is ``rx-1``."""
 TEXT = b"received over the air"
 
 

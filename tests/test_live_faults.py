@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from eventocc.occ.report import MessageReport, PoseReport, TrackingState
+from eventocc.occ.report import MessageReport, PoseReport, TrackingState, public_receiver_id
 from eventocc.occ.stream import ReceivedMessage
 from eventocc.receiver.live.publisher import Publisher
 from eventocc.receiver.live.spool import Spool
@@ -135,7 +135,7 @@ def test_server_killed_and_restarted_mid_stream_loses_nothing(server_process, tm
     assert names == [f"m{i}.txt" for i in range(6)], "every message exactly once"
     assert publisher.stats.connections == 2
     with urllib.request.urlopen(
-        f"{server_process.url}/api/receivers/{spool.receiver_id}/trajectory"
+        f"{server_process.url}/api/receivers/{public_receiver_id(spool.receiver_id)}/trajectory"
     ) as response:
         rows = response.read().decode().splitlines()[1:]
     assert [row.split()[0] for row in rows] == [f"0.0{i}0000" for i in range(6)]

@@ -1,18 +1,20 @@
 """Hostile input to the live routes over real websockets: frames outside the protocol, numbers
-JSON cannot hold, bursts of reports.
+JSON cannot hold, a receiver's identity claimed by another connection, bursts of reports.
 None of it may answer with a traceback, reach the dashboards or touch another receiver."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import sqlite3
 import urllib.error
 
 import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from eventocc.occ.report import HealthReport, Hello, TrackingState
+from eventocc.occ.report import HealthReport, Hello, TrackingState, public_receiver_id
+from eventocc.server.receptions import ReceptionStore
 from tests.live_clients import (
     RX_1,
     TOKEN,
@@ -153,7 +155,102 @@ def test_a_status_no_receiver_can_follow_is_refused_over_the_websocket(serve_app
     assert server_log.errors() == []
 
 
-# --- receivers -------------------------------------------------------------------------------
+# --- a receiver's identity ---------------------------------------------------------------------
+def test_nothing_the_server_shows_holds_a_receivers_secret_id(serve_app) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+
+    async def scenario() -> list[str]:
+        async with connect(ws_url(base_url, "/ws/dashboard")) as dash:
+            ws, _ = await open_receiver(base_url, "secret-of-rx")
+            await ws.send(envelope(1, pose(1)))
+            await ws.recv()
+            seen = [await asyncio.wait_for(dash.recv(), 5) for _ in range(2)]
+            await ws.close()
+            return seen
+
+    seen = asyncio.run(scenario())
+    public = public_receiver_id("secret-of-rx")
+    assert public in seen[0] and public in seen[1]
+    shown = "".join(seen) + get(base_url, f"/api/receivers/{public}/trajectory").decode()
+    assert "secret-of-rx" not in shown + get(base_url, "/metrics").decode()
+
+
+def test_a_receiver_seen_on_the_dashboard_cannot_be_spoken_for(serve_app) -> None:
+    """The attack: read a receiver's id off the dashboard, connect with it and send seq 2^62,
+    so that the server skips the victim's later reports as replays and tells the victim, when
+    it reconnects, to delete its spool."""
+    base_url, app = serve_app(token=TOKEN)
+    receptions = app.state.live.receptions
+
+    async def scenario() -> tuple[dict, int]:
+        async with connect(ws_url(base_url, "/ws/dashboard")) as dash:
+            victim, _ = await open_receiver(base_url, "victims-secret")
+            await victim.send(envelope(1, pose(1)))
+            await victim.recv()
+            while (update := json.loads(await asyncio.wait_for(dash.recv(), 5)))["type"] != "pose":
+                pass
+        attacker, _ = await open_receiver(base_url, update["receiver"])
+        await attacker.send(envelope(2**62, pose(99)))
+        await attacker.recv()
+        await attacker.close()
+        await victim.send(envelope(2, pose(2)))
+        ack = json.loads(await victim.recv())
+        await victim.close()
+        again, welcome = await open_receiver(base_url, "victims-secret")
+        await again.close()
+        return ack, welcome["last_seq"]
+
+    ack, last_seq = asyncio.run(scenario())
+    assert ack == {"type": "ack", "seq": 2}
+    assert last_seq == 2, "the victim keeps every report the server has not stored"
+    assert [row[0] for row in receptions.poses(public_receiver_id("victims-secret"))] == [1, 2]
+
+
+def test_a_restarted_receiver_takes_over_from_its_dead_connection(serve_app) -> None:
+    """A receiver killed (-9) on a host that vanished leaves the server holding its old
+    connection: the restarted receiver, which alone knows its secret id, must not wait for it."""
+    base_url, app = serve_app(token=TOKEN)
+
+    async def scenario() -> tuple[int, int, list[dict]]:
+        old, _ = await open_receiver(base_url)
+        await old.send(envelope(1, pose(1)))
+        await old.recv()
+        old.transport.pause_reading()  # the old daemon is gone: it never reads or sends again
+        new, welcome = await open_receiver(base_url)
+        await new.send(envelope(2, pose(2)))
+        ack = json.loads(await new.recv())
+        old.transport.resume_reading()
+        with pytest.raises(ConnectionClosed) as closed:
+            while True:
+                await asyncio.wait_for(old.recv(), 5)
+        receivers = json.loads(get(base_url, "/healthz"))["receivers"]
+        await new.close()
+        return welcome["last_seq"], closed.value.rcvd.code, [ack, receivers]
+
+    last_seq, old_code, (ack, receivers) = asyncio.run(scenario())
+    assert (last_seq, old_code) == (1, 4409)
+    assert ack == {"type": "ack", "seq": 2} and receivers == 1
+    assert [row[0] for row in app.state.live.receptions.poses(RX_1)] == [1, 2]
+
+
+def test_receivers_kept_under_their_secret_id_are_renamed_to_their_public_one(tmp_path) -> None:
+    """Servers before public ids kept (and showed) receivers under the id they connect with."""
+    path = tmp_path / "eventocc.db"
+    ReceptionStore(path).close()
+    with sqlite3.connect(path) as db:
+        db.execute("PRAGMA user_version = 0")
+        db.execute("INSERT INTO receivers VALUES ('old-rx', 'then', 'then', 41)")
+        db.execute("INSERT INTO receiver_poses VALUES ('old-rx', 5, 0, 0, 0, 0, 0, 0, 1)")
+    db.close()
+    store = ReceptionStore(path)
+    public = public_receiver_id("old-rx")
+    assert store.register(public) == 41, "the receiver goes on where it was"
+    assert store.poses(public) == [(5, 0, 0, 0, 0, 0, 0, 1)]
+    assert store.poses("old-rx") is None
+    store.close()
+    assert ReceptionStore(path).register(public) == 41, "renamed once, not again"
+
+
 def test_the_trajectory_of_a_receiver_never_seen_is_404(serve_app) -> None:
     base_url, _ = serve_app()
     with pytest.raises(urllib.error.HTTPError) as missing:

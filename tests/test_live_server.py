@@ -148,8 +148,9 @@ def test_dashboards_see_receivers_poses_and_receptions(serve_app) -> None:
     seen = asyncio.run(scenario())
     kinds = [update["type"] for update in seen]
     assert kinds == ["receivers", "pose", "reception", "surface"]
-    assert seen[0]["receivers"][0]["receiver_id"] == RX_1
+    assert seen[0]["receivers"] == [{"receiver": RX_1, "version": 1}]
     assert "token" not in json.dumps(seen[0]), "a receiver's token must never reach viewers"
+    assert "rx-1" not in json.dumps(seen), "nor its secret id"
     assert seen[1]["receiver"] == RX_1 and seen[1]["position"] == [0.1, 0.2, -0.5]
     assert seen[2]["url"].startswith("/api/receptions/")
 

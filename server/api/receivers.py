@@ -1,9 +1,11 @@
 """Receiver daemons: ``/ws/receiver`` and the trajectory they leave.
 
-A receiver opens with a ``Hello`` carrying the server's token (when one is set), then sends
-numbered reports ``{"seq": n | null, "report": {...}}``. Durable reports (numbered) are stored,
-then acknowledged with ``{"type": "ack", "seq": n}``; a replayed number is acknowledged and
-skipped. Each report goes on to the dashboards.
+A receiver opens with a ``Hello`` carrying its secret id and the server's token (when one is
+set), then sends numbered reports ``{"seq": n | null, "report": {...}}``. Durable reports
+(numbered) are stored, then acknowledged with ``{"type": "ack", "seq": n}``; a replayed number
+is acknowledged and skipped. Each report goes on to the dashboards under the receiver's public
+id. One connection speaks for a receiver at a time: a newer one with the same secret id takes
+over (the receiver restarted), and the older one is closed.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from eventocc.occ.report import (
 from eventocc.server.api.deps import LiveDep
 from eventocc.server.api.receptions import ReceptionPublic
 from eventocc.server.api.sockets import MalformedFrame, receive_text, refuse
-from eventocc.server.api.state import LiveState
+from eventocc.server.api.state import LiveState, ReceiverSession
 from eventocc.server.store import MessageStore
 
 log = logging.getLogger(__name__)
@@ -43,6 +45,8 @@ CLOSE_UNAUTHORIZED = 4401
 """No token, or a wrong one."""
 CLOSE_BAD_HANDSHAKE = 4400
 """The first message was not a valid ``Hello``, or did not come in time."""
+CLOSE_REPLACED = 4409
+"""A newer connection of the same receiver took over."""
 HELLO_TIMEOUT_S = 5.0
 
 report_adapter: TypeAdapter[Report] = TypeAdapter(Report)
@@ -80,24 +84,30 @@ async def receiver_socket(websocket: WebSocket, live: LiveDep) -> None:
     if not token_is_valid(websocket, hello):
         await refuse(websocket, CLOSE_UNAUTHORIZED, "missing or wrong token")
         return
-    receiver = hello.receiver_id
-    live.receivers[receiver] = hello
-    live.announce_receivers()
+    session = live.claim(hello)
+    exchange = asyncio.create_task(exchange_reports(websocket, live, session))
+    replaced = asyncio.create_task(session.replaced.wait())
     try:
-        await exchange_reports(websocket, live, receiver)
-    except MalformedFrame as error:
-        await refuse(websocket, error.code, f"{error}")
+        await asyncio.wait({exchange, replaced}, return_when=asyncio.FIRST_COMPLETED)
     finally:
-        live.receivers.pop(receiver, None)
-        live.hub.forget(f"{receiver}:")
-        live.announce_receivers()
-        log.info("receiver %s disconnected", receiver)
+        exchange.cancel()
+        replaced.cancel()
+        if live.release(session):
+            log.info("receiver %s disconnected", session.receiver)
+    error = exchange.exception() if exchange.done() and not exchange.cancelled() else None
+    if session.replaced.is_set():
+        await refuse(websocket, CLOSE_REPLACED, "a newer connection of this receiver took over")
+    elif isinstance(error, MalformedFrame):
+        await refuse(websocket, error.code, f"{error}")
+    elif error is not None:
+        raise error
 
 
-async def exchange_reports(websocket: WebSocket, live: LiveState, receiver: str) -> None:
+async def exchange_reports(websocket: WebSocket, live: LiveState, session: ReceiverSession) -> None:
     """Welcome the receiver, then store, acknowledge and pass on its reports until it goes.
 
     Returns on a disconnect; raises ``MalformedFrame`` for a frame outside the protocol."""
+    receiver = session.receiver
     try:
         last_seq = await asyncio.to_thread(live.receptions.register, receiver)
         await websocket.send_json({"type": "welcome", "last_seq": last_seq})
@@ -209,7 +219,7 @@ def upload_with_digest(messages: MessageStore, sha256: str) -> str | None:
 @router.get(
     "/{receiver}/trajectory",
     response_class=PlainTextResponse,
-    responses={404: {"description": "No receiver with this id ever connected."}},
+    responses={404: {"description": "No receiver with this public id ever connected."}},
 )
 def read_trajectory(receiver: str, live: LiveDep) -> str:
     """The receiver's kept poses as a TUM file (``t tx ty tz qx qy qz qw``, t in seconds)."""
