@@ -139,6 +139,25 @@ def test_malformed_id_is_422(client: TestClient) -> None:
     assert response.json()["detail"][0]["loc"] == ["path", "message_id"]
 
 
+@pytest.mark.parametrize("read", ["content", "frames?count=1"])
+def test_a_message_deleted_while_it_is_read_is_404(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch, read: str
+) -> None:
+    facts = upload(client, b"going, going")
+    store = client.app.state.store
+    look_up = store.get
+
+    def deleted_right_after_the_lookup(message_id: str):
+        message = look_up(message_id)
+        store.delete(message_id)
+        return message
+
+    monkeypatch.setattr(store, "get", deleted_right_after_the_lookup)
+    response = client.get(f"/api/messages/{facts['id']}/{read}")
+    assert response.status_code == 404
+    assert response.json()["detail"] == f"message {facts['id']!r} has been deleted"
+
+
 def test_messages_survive_a_restart(tmp_path: Path) -> None:
     facts = upload(make_client(tmp_path), b"persistent")
     reopened = make_client(tmp_path)

@@ -6,6 +6,8 @@ from fastapi import FastAPI, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
+from eventocc.server.store import MessageDeleted
+
 
 async def request_invalid(request: Request, error: RequestValidationError) -> JSONResponse:
     """422 with where and what each problem is. The input is not echoed back: the client sent
@@ -14,5 +16,12 @@ async def request_invalid(request: Request, error: RequestValidationError) -> JS
     return JSONResponse({"detail": problems}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
 
+async def message_deleted(request: Request, error: MessageDeleted) -> JSONResponse:
+    """A message deleted while a request was reading it (its frames, its bytes) is gone: 404,
+    as for the requests that come after."""
+    return JSONResponse({"detail": str(error)}, status_code=status.HTTP_404_NOT_FOUND)
+
+
 def add_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, request_invalid)
+    app.add_exception_handler(MessageDeleted, message_deleted)
