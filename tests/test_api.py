@@ -75,7 +75,9 @@ def test_multipart_upload_keeps_the_file_name(client: TestClient) -> None:
     assert response.json()["name"] == "report.pdf"
     download = client.get(f"/api/messages/{response.json()['id']}/content")
     assert download.content == b"%PDF-1.7 ..."
-    assert download.headers["content-disposition"] == "attachment; filename*=UTF-8''report.pdf"
+    assert download.headers["content-disposition"] == (
+        "attachment; filename=\"report.pdf\"; filename*=UTF-8''report.pdf"
+    )
 
 
 def test_json_upload_stores_utf8_text(client: TestClient) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import hashlib
+import http.client
 import json
 import os
 import socket
@@ -79,6 +80,39 @@ def test_finished_message_is_stored_verified_acked_and_downloadable(serve_app) -
     assert reception["receiver"] == RX_1 and reception["name"] == "note.txt"
     assert get(base_url, reception["url"]) == TEXT
     assert json.loads(get(base_url, f"/api/receptions/{reception['id']}"))["size"] == len(TEXT)
+
+
+DOWNLOAD_NAMES = {
+    "日本語.txt": 'attachment; filename="___.txt"; '
+    "filename*=UTF-8''%E6%97%A5%E6%9C%AC%E8%AA%9E.txt",
+    'a".txt': "attachment; filename=\"a_.txt\"; filename*=UTF-8''a%22.txt",
+    "x\r\nSet-Cookie: y=1": 'attachment; filename="x__Set-Cookie: y=1"; '
+    "filename*=UTF-8''x%0D%0ASet-Cookie%3A%20y%3D1",
+    "100%\\ sure": "attachment; filename=\"100__ sure\"; filename*=UTF-8''100%25%5C%20sure",
+}
+
+
+def test_a_reception_downloads_under_any_name_a_receiver_sends(serve_app) -> None:
+    """RFC 6266: the exact name in ``filename*``, an ASCII stand-in in ``filename``; and one
+    keep-alive connection serves every download."""
+    base_url, _ = serve_app(token=TOKEN)
+
+    async def send_receptions() -> None:
+        ws, _ = await open_receiver(base_url)
+        for seq, name in enumerate(DOWNLOAD_NAMES, 1):
+            await ws.send(envelope(seq, message_report(name.encode(), name)))
+            await ws.recv()
+        await ws.close()
+
+    asyncio.run(send_receptions())
+    receptions = json.loads(get(base_url, "/api/receptions"))["receptions"]
+    connection = http.client.HTTPConnection(base_url.removeprefix("http://"), timeout=5)
+    for reception in receptions:
+        connection.request("GET", reception["url"])
+        response = connection.getresponse()
+        assert response.read() == reception["name"].encode()
+        assert response.headers["Content-Disposition"] == DOWNLOAD_NAMES[reception["name"]]
+    connection.close()
 
 
 def test_reconnecting_receiver_learns_what_was_stored(serve_app) -> None:

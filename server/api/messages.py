@@ -9,7 +9,6 @@ from __future__ import annotations
 import re
 from pathlib import PurePosixPath
 from typing import Annotated
-from urllib.parse import quote
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 from starlette.concurrency import run_in_threadpool
@@ -21,6 +20,7 @@ from eventocc.server.api.deps import (
     StoreDep,
     require_write_token,
 )
+from eventocc.server.api.downloads import download
 from eventocc.server.api.encoding import describe, link_facts, new_encoder
 from eventocc.server.api.schemas import MessagePublic, MessagesPublic, MessageText, ProfileName
 from eventocc.server.api.uploads import UPLOAD_MEDIA_TYPES, read_upload
@@ -120,11 +120,7 @@ def read_message(message: MessageDep) -> MessagePublic:
 )
 def read_message_content(message: MessageDep, store: StoreDep) -> Response:
     """Download the message under its original name."""
-    return Response(
-        store.content(message),
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f"attachment; filename*=UTF-8''{quote(message.name)}"},
-    )
+    return download(store.content(message), message.name)
 
 
 @router.delete(
