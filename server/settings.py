@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Self
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
@@ -19,6 +20,10 @@ class Settings(BaseSettings):
     data_dir: Path = Path("data")
     """Holds the SQLite database; created on first use."""
     max_upload_bytes: int = Field(64 * MIB, ge=1)
+    upload_budget_bytes: int | None = Field(None, ge=1)
+    """Bytes of uploads held at once over all requests (None: twice ``max_upload_bytes``); an
+    upload that would pass it is refused with 503, to retry later. Each held byte costs about
+    three while the message is encoded and stored."""
     token: SecretStr | None = None
     """When set, writes (upload, delete) need ``Authorization: Bearer <token>``."""
     host: str = "127.0.0.1"
@@ -34,6 +39,22 @@ class Settings(BaseSettings):
         if name not in PROFILE_NAMES:
             raise ValueError(f"unknown profile {name!r}; choose one of {', '.join(PROFILE_NAMES)}")
         return name
+
+    @model_validator(mode="after")
+    def _budget_holds_an_upload(self) -> Self:
+        if (
+            self.upload_budget_bytes is not None
+            and self.upload_budget_bytes < self.max_upload_bytes
+        ):
+            raise ValueError(
+                f"upload_budget_bytes ({self.upload_budget_bytes}) must be at least "
+                f"max_upload_bytes ({self.max_upload_bytes}), or no upload of that size could pass"
+            )
+        return self
+
+    @property
+    def upload_budget(self) -> int:
+        return self.upload_budget_bytes or 2 * self.max_upload_bytes
 
     @field_validator("token")
     @classmethod

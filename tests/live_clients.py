@@ -7,6 +7,7 @@ import asyncio
 import hashlib
 import json
 import logging
+import time
 import urllib.request
 
 import pytest
@@ -26,6 +27,14 @@ TOKEN = "s3cret-token"
 RX_1 = public_receiver_id("rx-1")
 """What the server shows of the receiver whose secret id is ``rx-1``."""
 TEXT = b"received over the air"
+
+
+def wait_until(condition, timeout_s: float = 30.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
 
 
 def ws_url(base_url: str, path: str) -> str:

@@ -169,6 +169,10 @@ def test_settings_come_from_the_environment(
         ({"token": ""}, "token must not be empty"),
         ({"port": 70000}, "less than or equal to 65535"),
         ({"max_upload_bytes": 0}, "greater than or equal to 1"),
+        (
+            {"max_upload_bytes": 2 * MIB, "upload_budget_bytes": MIB},
+            "must be at least max_upload_bytes",
+        ),
     ],
 )
 def test_bad_settings_are_refused(options: dict, reason: str) -> None:

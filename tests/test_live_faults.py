@@ -21,6 +21,7 @@ from eventocc.occ.report import MessageReport, PoseReport, TrackingState, public
 from eventocc.occ.stream import ReceivedMessage
 from eventocc.receiver.live.publisher import Publisher
 from eventocc.receiver.live.spool import Spool
+from tests.live_clients import wait_until
 
 TOKEN = "fault-token"
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,14 +36,6 @@ def free_port() -> int:
 def get_json(url: str) -> dict:
     with urllib.request.urlopen(url, timeout=5) as response:
         return json.load(response)
-
-
-def wait_until(condition, timeout_s: float = 30.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 class ServerProcess:
@@ -148,6 +141,7 @@ sys.path.insert(0, {tests!r})
 from test_live_faults import message
 from eventocc.receiver.live.publisher import Publisher
 from eventocc.receiver.live.spool import Spool
+from tests.live_clients import wait_until
 
 spool = Spool(Path({out!r}) / "spool.db")
 publisher = Publisher({url!r}, spool, token={token!r}, backoff_s=(0.05, 0.5)).start()

@@ -18,6 +18,7 @@ from websockets.asyncio.client import connect
 
 from eventocc.occ.report import Hello, SurfaceReport
 from eventocc.server.receptions import ReceptionStore
+from eventocc.server.settings import MIB
 from tests.live_clients import (
     RX_1,
     TEXT,
@@ -29,6 +30,7 @@ from tests.live_clients import (
     open_receiver,
     pose,
     upload,
+    wait_until,
     ws_url,
 )
 
@@ -269,6 +271,34 @@ def test_a_stalled_dashboard_does_not_slow_the_others(serve_app) -> None:
     assert asyncio.run(scenario()) == count
     assert hub.dropped >= hub.evict_after, "the stalled viewer was decimated first"
     assert hub.evicted == 1, "then dropped"
+
+
+def test_uploads_share_one_memory_budget(serve_app) -> None:
+    """Two uploads under way hold the whole budget: a third is refused (503) until they end,
+    whatever its own size."""
+    base_url, app = serve_app(max_upload_bytes=MIB, upload_budget_bytes=2 * MIB)
+    budget = app.state.upload_budget
+    host, port = base_url.removeprefix("http://").split(":")
+    head = (
+        "POST /api/messages HTTP/1.1\r\nHost: x\r\nContent-Type: application/octet-stream\r\n"
+        f"Content-Length: {MIB}\r\n\r\n"
+    ).encode()
+    slow = [socket.create_connection((host, int(port)), timeout=10) for _ in range(2)]
+    for sock in slow:
+        sock.sendall(head + b"x" * 1000)  # and the rest later
+    wait_until(lambda: budget.held == 2 * MIB)
+
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        upload(base_url, b"small")
+    assert refused.value.code == 503 and refused.value.headers["Retry-After"]
+    assert "busy with other uploads" in json.loads(refused.value.read())["detail"]
+
+    for sock in slow:
+        sock.sendall(b"x" * (MIB - 1000))
+        assert sock.recv(100).startswith(b"HTTP/1.1 201")
+        sock.close()
+    wait_until(lambda: budget.held == 0)
+    assert upload(base_url, b"small")["size"] == 5
 
 
 def test_websockets_are_not_compressed(serve_app) -> None:

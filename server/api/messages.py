@@ -18,6 +18,7 @@ from eventocc.server.api.deps import (
     MessageDep,
     SettingsDep,
     StoreDep,
+    UploadBudgetDep,
     require_write_token,
 )
 from eventocc.server.api.downloads import download
@@ -64,6 +65,7 @@ def clean_name(name: str) -> str:
     openapi_extra={"requestBody": UPLOAD_BODY},
     responses={
         413: {"description": "The message is over the upload limit."},
+        503: {"description": "Other uploads hold the server's upload memory: retry later."},
         415: {"description": f"Content-Type is not one of {', '.join(UPLOAD_MEDIA_TYPES)}."},
         422: {"description": "Empty message, malformed body or unusable options."},
     },
@@ -73,6 +75,7 @@ async def create_message(
     response: Response,
     store: StoreDep,
     settings: SettingsDep,
+    budget: UploadBudgetDep,
     name: Annotated[str | None, Query(description="Defaults to the uploaded file's name.")] = None,
     profile: ProfileName | None = None,
     cells: CellsQuery = None,
@@ -81,20 +84,21 @@ async def create_message(
 
     Every upload gets a new id; identical bytes are stored once (content-addressed by sha256).
     A message the link format cannot send with this profile and cell count is refused (422)."""
-    upload = await read_upload(request, settings.max_upload_bytes)
-    if name is None:
-        name = upload.filename or ("message.txt" if upload.is_text else "message.bin")
-    name = clean_name(name)
-    profile_name = profile.value if profile else settings.default_profile
-    cells = cells or settings.default_cells
+    with budget.claim() as claim:  # until the message is stored
+        upload = await read_upload(request, settings.max_upload_bytes, claim)
+        if name is None:
+            name = upload.filename or ("message.txt" if upload.is_text else "message.bin")
+        name = clean_name(name)
+        profile_name = profile.value if profile else settings.default_profile
+        cells = cells or settings.default_cells
 
-    def encode_and_store() -> StoredMessage:  # CPU and disk work: off the event loop
-        # The encoder is built first, so a message the link refuses is never stored.
-        encoder = new_encoder(upload.data, name=name, profile=profile_name, cells=cells)
-        facts = link_facts(encoder)
-        return store.add(upload.data, name=name, profile=profile_name, cells=cells, facts=facts)
+        def encode_and_store() -> StoredMessage:  # CPU and disk work: off the event loop
+            # The encoder is built first, so a message the link refuses is never stored.
+            encoder = new_encoder(upload.data, name=name, profile=profile_name, cells=cells)
+            facts = link_facts(encoder)
+            return store.add(upload.data, name=name, profile=profile_name, cells=cells, facts=facts)
 
-    message = await run_in_threadpool(encode_and_store)
+        message = await run_in_threadpool(encode_and_store)
     response.headers["Location"] = f"{request.url.path}/{message.id}"
     return describe(message)
 
