@@ -26,6 +26,9 @@ class Settings(BaseSettings):
     three while the message is encoded and stored."""
     token: SecretStr | None = None
     """When set, writes (upload, delete) need ``Authorization: Bearer <token>``."""
+    allowed_origins: list[str] = []
+    """Web origins besides the server's own whose pages may change things here and open its
+    websockets (``https://screens.example``), e.g. behind a proxy that rewrites Host."""
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     default_profile: str = DEFAULT_PROFILE

@@ -272,3 +272,37 @@ def test_profiles_lists_what_an_upload_may_choose(tmp_path: Path) -> None:
         "min_cells": 8,
         "max_cells": 128,
     }
+
+
+# --- other sites' pages ------------------------------------------------------------------------
+EVIL = {"Origin": "http://evil.example"}
+
+
+def test_pages_of_other_sites_cannot_change_anything(client: TestClient) -> None:
+    kept = upload(client, b"keep me")
+    before = stored_state(client)
+    writes = [
+        client.post("/api/messages", content=b"x", headers={**RAW, **EVIL}),
+        client.post("/api/messages", files={"file": ("a.txt", b"x")}, headers={**EVIL}),
+        client.delete(f"/api/messages/{kept['id']}", headers=EVIL),
+        client.post("/api/transmitter/status", json={"frame_index": 1}, headers=EVIL),
+        client.post("/api/messages", content=b"x", headers={**RAW, "Origin": "null"}),
+    ]
+    for response in writes:
+        assert response.status_code == 403
+        assert "a page of" in response.json()["detail"]
+    assert stored_state(client) == before
+    assert client.get("/api/messages", headers=EVIL).status_code == 200, "reads stay open"
+
+
+def test_the_servers_own_pages_and_programs_may_write(client: TestClient) -> None:
+    own = {"Origin": "http://testserver"}  # the Host TestClient sends
+    assert upload(client, b"from the page", **own)["size"] == 13
+    assert upload(client, b"from curl")["size"] == 9
+
+
+def test_an_allowed_origin_may_write(tmp_path: Path) -> None:
+    client = make_client(tmp_path, allowed_origins=["https://screens.example"])
+    assert upload(client, b"x", Origin="https://screens.example")["size"] == 1
+    response = client.post("/api/messages", content=b"x", headers={**RAW, **EVIL})
+    assert response.status_code == 403

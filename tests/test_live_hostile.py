@@ -5,13 +5,17 @@ None of it may answer with a traceback, reach the dashboards or touch another re
 from __future__ import annotations
 
 import asyncio
+import functools
+import http.server
 import json
 import sqlite3
+import threading
 import urllib.error
+from pathlib import Path
 
 import pytest
 from websockets.asyncio.client import connect
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from eventocc.occ.report import HealthReport, Hello, TrackingState, public_receiver_id
 from eventocc.server.receptions import ReceptionStore
@@ -282,3 +286,64 @@ def test_a_burst_of_reports_evicts_no_healthy_dashboard(serve_app) -> None:
 
     assert asyncio.run(scenario()) == burst - 1
     assert app.state.live.hub.evicted == 0
+
+
+# --- other sites' pages ------------------------------------------------------------------------
+@pytest.mark.parametrize("path", ["/ws/receiver", "/ws/dashboard", "/ws/transmitter"])
+def test_pages_of_other_sites_cannot_open_a_websocket(serve_app, path: str) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+
+    async def handshake(origin: str | None) -> int:
+        try:
+            async with connect(ws_url(base_url, path), origin=origin):
+                return 101
+        except InvalidStatus as refused:
+            return refused.response.status_code
+
+    assert asyncio.run(handshake("http://evil.example")) == 403
+    assert asyncio.run(handshake(base_url)) == 101, "the server's own pages"
+    assert asyncio.run(handshake(None)) == 101, "programs, the receiver daemon among them"
+
+
+ATTACK = """<!doctype html><script>
+function opens(url, first) {
+  return new Promise((resolve) => {
+    const socket = new WebSocket(url);
+    socket.onopen = () => {
+      if (first) socket.send(first);
+      setTimeout(() => resolve("open"), 200);
+    };
+    socket.onerror = () => resolve("refused");
+  });
+}
+
+async function attack(target) {
+  const form = new FormData();
+  form.append("file", new Blob(["planted"]), "planted.txt");
+  await fetch(`${target}/api/messages`, { method: "POST", mode: "no-cors", body: form });
+  const ws = target.replace("http", "ws");
+  const status = JSON.stringify({ profile: "fast", cells: 128, refresh_hz: 1000 });
+  return [await opens(`${ws}/ws/transmitter`, status), await opens(`${ws}/ws/dashboard`)];
+}
+</script>"""
+
+
+@pytest.mark.browser
+def test_a_page_of_another_site_in_a_browser_changes_nothing(
+    serve_app, browser, tmp_path: Path
+) -> None:
+    """What a page elsewhere can make a visitor's browser do without asking: upload by a
+    ``no-cors`` fetch, post a status and read the dashboards over websockets."""
+    base_url, app = serve_app()
+    (tmp_path / "attack.html").write_text(ATTACK)
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=tmp_path)
+    elsewhere = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=elsewhere.serve_forever, daemon=True).start()
+    try:
+        page = browser.new_page()
+        page.goto(f"http://127.0.0.1:{elsewhere.server_port}/attack.html")
+        assert page.evaluate(f"attack({json.dumps(base_url)})") == ["refused", "refused"]
+    finally:
+        elsewhere.shutdown()
+    assert app.state.store.messages() == []
+    assert app.state.live.transmitter is None
