@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from urllib.parse import quote
 
 import pytest
 from fastapi.testclient import TestClient
@@ -86,6 +87,18 @@ def test_json_upload_stores_utf8_text(client: TestClient) -> None:
     facts = response.json()
     assert facts["name"] == "message.txt"
     assert client.get(f"/api/messages/{facts['id']}/content").content == "grüße 👋".encode()
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "\U0001f468\u200d\U0001f469\u200d\U0001f467.txt",
+        "\u0645\u06cc\u200c\u062e\u0648\u0627\u0647\u0645",
+        "é" * 127 + "a",
+    ],
+)
+def test_names_may_hold_joiners_and_fill_255_bytes(client: TestClient, name: str) -> None:
+    assert upload(client, b"x", f"?name={quote(name)}")["name"] == name
 
 
 def test_name_loses_any_directory_part(client: TestClient) -> None:
@@ -192,6 +205,20 @@ BAD_UPLOADS = {
         422,
         "'file'",
     ),
+    "multipart file as a plain field": (
+        {"files": {"file": ("", b"abc")}},  # httpx sends no filename for ""
+        422,
+        "the form's 'file' part is a plain field",
+    ),
+    "multipart with no file chosen": (
+        {
+            "content": b'--B\r\nContent-Disposition: form-data; name="file"; filename=""\r\n'
+            b"Content-Type: application/octet-stream\r\n\r\n\r\n--B--\r\n",
+            "headers": {"Content-Type": "multipart/form-data; boundary=B"},
+        },
+        422,
+        "no file was chosen",
+    ),
     "no content type": ({"content": b"x"}, 415, "send one of application/octet-stream"),
     "text/plain": ({"content": b"x", "headers": {"Content-Type": "text/plain"}}, 415, "text/plain"),
 }
@@ -203,6 +230,11 @@ BAD_OPTIONS = {
     "empty name": ("?name=", "bad message name"),
     "name of dots": ("?name=..", "bad message name"),
     "name with a control character": ("?name=a%0Ab", "bad message name"),
+    "name with a C1 control": ("?name=a%C2%85b.txt", "U+0085"),
+    "name that shows reversed": ("?name=evil%E2%80%AEtxt.exe", "U+202E (RIGHT-TO-LEFT OVERRIDE)"),
+    "name with a zero-width space": ("?name=a%E2%80%8Bb.txt", "U+200B (ZERO WIDTH SPACE)"),
+    "name with a line separator": ("?name=a%E2%80%A8b.txt", "U+2028 (LINE SEPARATOR)"),
+    "name over 255 bytes": ("?name=" + "%C3%A9" * 128, "it is 256 bytes of UTF-8"),
     "payload too small for the profile": ("?profile=robust&cells=8", "use more cells"),
     "paper cells not a multiple of 4": ("?profile=paper&cells=10", "multiple of 4"),
 }

@@ -6,7 +6,7 @@ name, profile and cell count. The bytes themselves are stored once per sha256.
 
 from __future__ import annotations
 
-import re
+import unicodedata
 from pathlib import PurePosixPath
 from typing import Annotated
 
@@ -29,7 +29,14 @@ from eventocc.server.store import StoredMessage
 
 router = APIRouter(prefix="/messages", tags=["messages"])
 
-_UNSAFE_NAME = re.compile(r"[\x00-\x1f\x7f]")
+MAX_NAME_BYTES = 255
+"""A file name's limit on common file systems, in UTF-8 bytes (the link's too)."""
+INVISIBLE = frozenset({"Cc", "Cf", "Cs", "Zl", "Zp"})
+"""Unicode categories a name may not hold: controls (C0, DEL, C1), format characters (among
+them the bidirectional override U+202E, which shows ``evil<U+202E>txt.exe`` as
+``evilexe.txt``), surrogates, and line and paragraph separators."""
+JOINERS = frozenset("\u200c\u200d")
+"""The two format characters scripts and emoji need in names."""
 
 UPLOAD_BODY = {
     "required": True,
@@ -50,12 +57,25 @@ UPLOAD_BODY = {
 def clean_name(name: str) -> str:
     """The file name without any directory part; 422 if nothing usable is left."""
     base = PurePosixPath(name.replace("\\", "/")).name.strip()
-    if not base or base in {".", ".."} or _UNSAFE_NAME.search(base) or len(base) > 255:
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            f"bad message name {name!r}: give a file name of 1..255 printable characters",
-        )
-    return base
+    hidden = [c for c in base if unicodedata.category(c) in INVISIBLE and c not in JOINERS]
+    size = len(base.encode(errors="replace"))
+    if hidden:
+        because = f"{_describe(hidden[0])} is not shown as itself"
+    elif base in {"", ".", ".."}:
+        because = "no file name is left"
+    elif size > MAX_NAME_BYTES:
+        because = f"it is {size} bytes of UTF-8"
+    else:
+        return base
+    raise HTTPException(
+        status.HTTP_422_UNPROCESSABLE_CONTENT,
+        f"bad message name {name!r} ({because}): give a file name of 1..{MAX_NAME_BYTES} "
+        "bytes of UTF-8 without control or format characters",
+    )
+
+
+def _describe(char: str) -> str:
+    return f"U+{ord(char):04X} ({unicodedata.name(char, 'a control character')})"
 
 
 @router.post(

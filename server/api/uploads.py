@@ -152,9 +152,18 @@ async def _parse_multipart(request: Request, limit: int, claim: Claim) -> Upload
     claim.grow_to(declared)
     form = await request.form(max_files=1, max_fields=8)
     file = form.get("file")
+    if file is None:
+        raise _unusable_form("the form has no part named 'file'")
     if not isinstance(file, UploadFile):
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            "multipart upload has no file part named 'file'",
+        raise _unusable_form(
+            "the form's 'file' part is a plain field: send it as a file part, with a filename "
+            "(curl -F file=@path)"
         )
-    return Upload(await file.read(), file.filename, is_text=False)
+    data = await file.read()
+    if not data and not file.filename:
+        raise _unusable_form("no file was chosen: the 'file' part has no filename and no bytes")
+    return Upload(data, file.filename, is_text=False)
+
+
+def _unusable_form(problem: str) -> HTTPException:
+    return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"multipart upload: {problem}")
