@@ -5,17 +5,24 @@ None of it may answer with a traceback, reach the dashboards or touch another re
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import http.server
 import json
+import os
+import signal
 import sqlite3
+import subprocess
+import sys
 import threading
 import urllib.error
+import urllib.request
 from pathlib import Path
 
 import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect as sync_connect
 
 from eventocc.occ.report import HealthReport, Hello, TrackingState, public_receiver_id
 from eventocc.server.receptions import ReceptionStore
@@ -29,8 +36,11 @@ from tests.live_clients import (
     open_receiver,
     pose,
     strict_json,
+    wait_until,
     ws_url,
 )
+
+ROOT = Path(__file__).resolve().parent.parent
 
 HELLO = Hello(receiver_id="rx-1", token=TOKEN).model_dump_json()
 POSE = json.loads(pose(1).model_dump_json())
@@ -347,3 +357,125 @@ def test_a_page_of_another_site_in_a_browser_changes_nothing(
         elsewhere.shutdown()
     assert app.state.store.messages() == []
     assert app.state.live.transmitter is None
+
+
+# --- a hostile neighbour -----------------------------------------------------------------------
+class Dashboard:
+    """A dashboard viewer reading in a thread, keeping what a browser's JSON.parse takes."""
+
+    def __init__(self, base_url: str) -> None:
+        self._connection = contextlib.ExitStack()
+        self.socket = self._connection.enter_context(
+            sync_connect(ws_url(base_url, "/ws/dashboard"), max_queue=None)
+        )
+        self.updates: list[dict] = []
+        self.unparsable = 0
+        self.closed_with: int | None = None
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        try:
+            for text in self.socket:
+                try:
+                    self.updates.append(strict_json(text))
+                except ValueError:
+                    self.unparsable += 1
+        except ConnectionClosed as closed:
+            self.closed_with = closed.rcvd.code if closed.rcvd else None
+
+    def poses_since(self, mark: int) -> int:
+        return sum(u["type"] == "pose" for u in self.updates[mark:])
+
+    def close(self) -> None:
+        self._connection.close()
+        self._thread.join(10)
+
+
+def attack(base_url: str, message_id: str, shown_id: str) -> None:
+    """Items 1, 5, 7 and 8 of the hardening issue, one after the other, as fast as they go,
+    whatever the server answers."""
+    playing = {"message_id": message_id, "playing": True, "refresh_hz": 60.0}
+    with sync_connect(ws_url(base_url, "/ws/transmitter")) as tx:
+        tx.send(json.dumps({**playing, "profile": "robust", "cells": 8}))
+    for bogus in ({"cells": 1}, {"refresh_hz": 1e-9}, {"profile": "bogus", "cells": 16}):
+        with contextlib.suppress(urllib.error.HTTPError):
+            post_json(base_url, "/api/transmitter/status", {**playing, **bogus})
+    with sync_connect(ws_url(base_url, "/ws/receiver")) as rx:  # the victim's shown id
+        rx.send(Hello(receiver_id=shown_id).model_dump_json())
+        rx.recv(5)
+        rx.send(envelope(2**62, pose(1)))
+        for i in range(10_000):  # a burst
+            health = HealthReport(cpu_load=i, events_per_s=0, state=TrackingState.IDLE)
+            rx.send(envelope(None, health))
+        rx.send(pose_with(position="[NaN, Infinity, 0]"))
+        with contextlib.suppress(ConnectionClosed, TimeoutError):
+            while True:
+                rx.recv(10)
+
+
+def post_json(base_url: str, path: str, body: dict) -> dict:
+    request = urllib.request.Request(
+        base_url + path,
+        data=json.dumps(body).encode(),
+        headers={"Content-Type": "application/json"},
+        method="POST",
+    )
+    with urllib.request.urlopen(request, timeout=10) as response:
+        return json.load(response)
+
+
+def test_a_hostile_neighbour_stops_neither_a_streaming_receiver_nor_the_dashboards(
+    serve_app, tmp_path: Path
+) -> None:
+    """The real receiver daemon on the virtual camera receives a message while another client
+    sends bogus transmitter statuses, speaks with the daemon's shown id and seq 2^62, bursts
+    10k reports and sends NaN: the message completes, the daemon runs on, and both dashboards
+    keep receiving, only JSON a browser parses."""
+    base_url, app = serve_app()  # no token: the attacker may connect receivers too
+    text = "Delivered next door to a hostile neighbour. " * 32  # some seconds of frames
+    message = post_json(base_url, "/api/messages?name=next-door.txt", {"text": text})
+    post_json(
+        base_url,
+        "/api/transmitter/status",
+        {"message_id": message["id"], "profile": message["profile"], "cells": message["cells"],
+         "playing": True, "frame_index": 0, "refresh_hz": 60.0},
+    )  # fmt: skip
+    dashboards = [Dashboard(base_url), Dashboard(base_url)]
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "eventocc.receiver.cli", "receive", "--source", "sim:",
+         "--motion", "static", "--server", base_url, "--out", str(tmp_path / "out")],
+        cwd=ROOT,
+        env={**os.environ, "NUMBA_NUM_THREADS": "1"},
+        stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+
+    def received() -> bool:
+        assert daemon.poll() is None, "the daemon stopped"
+        return any(r.message_id == message["id"] for r in app.state.live.receptions.receptions())
+
+    try:
+        shown = dashboards[0].updates
+        wait_until(lambda: any(u["type"] == "pose" for u in shown), 180, "the daemon's poses")
+        victim = next(u["receiver"] for u in shown if u["type"] == "pose")
+        mark = len(shown)
+        assert not received(), "the attack comes while the message streams"
+        attack(base_url, message["id"], victim)
+        marks = [len(d.updates) for d in dashboards]
+        wait_until(received, 180, "the message to complete")
+        wait_until(
+            lambda: all(d.poses_since(m) > 0 for d, m in zip(dashboards, marks, strict=True)), 30
+        )
+        assert daemon.poll() is None, "the daemon runs on"
+    finally:
+        daemon.send_signal(signal.SIGTERM)
+        _, log = daemon.communicate(timeout=60)
+        for dashboard in dashboards:
+            dashboard.close()
+    assert daemon.returncode == 0, log
+    assert app.state.live.hub.evicted == 0
+    assert [(d.closed_with, d.unparsable) for d in dashboards] == [(None, 0), (None, 0)]
+    (reception,) = [r for r in app.state.live.receptions.receptions() if r.receiver == victim]
+    assert reception.name == "next-door.txt" and reception.size == len(text)
+    assert any(u["type"] == "reception" for u in shown[mark:])
