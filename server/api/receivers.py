@@ -114,6 +114,8 @@ async def exchange_reports(websocket: WebSocket, live: LiveState, session: Recei
         log.info("receiver %s connected; stored up to its report %d", receiver, last_seq)
         while True:
             seq, report = await receive_report(websocket, live)
+            if session.replaced.is_set():  # what the older connection still sends is not stored
+                return
             if report is not None and (seq is None or seq > last_seq):
                 await handle_report(live, receiver, seq, report)
             if seq is not None:
