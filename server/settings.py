@@ -21,9 +21,9 @@ class Settings(BaseSettings):
     """Holds the SQLite database; created on first use."""
     max_upload_bytes: int = Field(64 * MIB, ge=1)
     upload_budget_bytes: int | None = Field(None, ge=1)
-    """Bytes of uploads held at once over all requests (None: twice ``max_upload_bytes``); an
-    upload that would pass it is refused with 503, to retry later. Each held byte costs about
-    three while the message is encoded and stored."""
+    """Bytes of upload bodies held at once over all requests (None: twice ``max_upload_bytes``);
+    an upload that would pass it is refused with 503, to retry later. The memory uploads take
+    is a small multiple of it: encoding and storing a message copies it."""
     token: SecretStr | None = None
     """When set, writes (upload, delete) need ``Authorization: Bearer <token>``."""
     allowed_origins: list[str] = []

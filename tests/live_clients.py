@@ -4,15 +4,18 @@ receiver's handshake and envelopes, REST calls, and the reports they send."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import json
 import logging
+import threading
 import time
 import urllib.request
 
 import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect as sync_connect
 
 from eventocc.occ.report import (
     Hello,
@@ -127,3 +130,35 @@ def strict_json(text: str | bytes) -> object:
         raise ValueError(f"{constant} is not JSON")
 
     return json.loads(text, parse_constant=refuse)
+
+
+class Dashboard:
+    """A dashboard viewer reading in a thread, keeping what a browser's JSON.parse takes."""
+
+    def __init__(self, base_url: str) -> None:
+        self._connection = contextlib.ExitStack()
+        self.socket = self._connection.enter_context(
+            sync_connect(ws_url(base_url, "/ws/dashboard"), max_queue=None)
+        )
+        self.updates: list[dict] = []
+        self.unparsable = 0
+        self.closed_with: int | None = None
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        try:
+            for text in self.socket:
+                try:
+                    self.updates.append(strict_json(text))
+                except ValueError:
+                    self.unparsable += 1
+        except ConnectionClosed as closed:
+            self.closed_with = closed.rcvd.code if closed.rcvd else None
+
+    def poses_since(self, mark: int) -> int:
+        return sum(u["type"] == "pose" for u in self.updates[mark:])
+
+    def close(self) -> None:
+        self._connection.close()
+        self._thread.join(10)

@@ -29,6 +29,7 @@ from eventocc.server.receptions import ReceptionStore
 from tests.live_clients import (
     RX_1,
     TOKEN,
+    Dashboard,
     ServerLog,
     close_code,
     envelope,
@@ -235,6 +236,7 @@ def test_a_restarted_receiver_takes_over_from_its_dead_connection(serve_app) -> 
         ack = json.loads(await new.recv())
         old.transport.resume_reading()
         with pytest.raises(ConnectionClosed) as closed:
+            await old.send(envelope(99, pose(99)))  # too late: not stored
             while True:
                 await asyncio.wait_for(old.recv(), 5)
         receivers = json.loads(get(base_url, "/healthz"))["receivers"]
@@ -360,38 +362,6 @@ def test_a_page_of_another_site_in_a_browser_changes_nothing(
 
 
 # --- a hostile neighbour -----------------------------------------------------------------------
-class Dashboard:
-    """A dashboard viewer reading in a thread, keeping what a browser's JSON.parse takes."""
-
-    def __init__(self, base_url: str) -> None:
-        self._connection = contextlib.ExitStack()
-        self.socket = self._connection.enter_context(
-            sync_connect(ws_url(base_url, "/ws/dashboard"), max_queue=None)
-        )
-        self.updates: list[dict] = []
-        self.unparsable = 0
-        self.closed_with: int | None = None
-        self._thread = threading.Thread(target=self._read, daemon=True)
-        self._thread.start()
-
-    def _read(self) -> None:
-        try:
-            for text in self.socket:
-                try:
-                    self.updates.append(strict_json(text))
-                except ValueError:
-                    self.unparsable += 1
-        except ConnectionClosed as closed:
-            self.closed_with = closed.rcvd.code if closed.rcvd else None
-
-    def poses_since(self, mark: int) -> int:
-        return sum(u["type"] == "pose" for u in self.updates[mark:])
-
-    def close(self) -> None:
-        self._connection.close()
-        self._thread.join(10)
-
-
 def attack(base_url: str, message_id: str, shown_id: str) -> None:
     """Items 1, 5, 7 and 8 of the hardening issue, one after the other, as fast as they go,
     whatever the server answers."""

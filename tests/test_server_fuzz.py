@@ -6,8 +6,8 @@ a browser can parse, and a receiver that behaves loses no report meanwhile."""
 
 from __future__ import annotations
 
+import contextlib
 import json
-import threading
 from collections.abc import Iterator
 from typing import Any
 from urllib.parse import quote
@@ -24,7 +24,7 @@ from eventocc.occ.report import Hello, Report, public_receiver_id
 from eventocc.server.api.schemas import TransmitterStatus
 from eventocc.server.app import create_app
 from eventocc.server.settings import Settings
-from tests.live_clients import ServerLog, envelope, pose, strict_json, ws_url
+from tests.live_clients import Dashboard, ServerLog, envelope, pose, strict_json, ws_url
 
 JSON_VALUES = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
@@ -189,26 +189,12 @@ class Bystander:
     must be acknowledged and kept, and the dashboard must get only JSON a browser parses."""
 
     def __init__(self, base_url: str) -> None:
-        self.receiver = connect(ws_url(base_url, "/ws/receiver"))
+        self._connections = contextlib.ExitStack()
+        self.receiver = self._connections.enter_context(connect(ws_url(base_url, "/ws/receiver")))
         self.receiver.send(Hello(receiver_id="bystander").model_dump_json())
         self.receiver.recv(5)  # welcome
         self.sent = 0
-        self.dashboard = connect(ws_url(base_url, "/ws/dashboard"), max_queue=None)
-        self.updates = 0
-        self.unparsable: list[str] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        try:
-            for text in self.dashboard:
-                self.updates += 1
-                try:
-                    strict_json(text)
-                except ValueError:
-                    self.unparsable.append(str(text)[:200])
-        except ConnectionClosed:
-            pass
+        self.dashboard = Dashboard(base_url)
 
     def report(self) -> None:
         self.sent += 1
@@ -216,9 +202,8 @@ class Bystander:
         assert json.loads(self.receiver.recv(10)) == {"type": "ack", "seq": self.sent}
 
     def close(self) -> None:
-        self.receiver.close()
+        self._connections.close()
         self.dashboard.close()
-        self._reader.join(10)
 
 
 def exchange(url: str, first: str | bytes, then: list[str | bytes]) -> None:
@@ -267,7 +252,7 @@ def bystander(live_server) -> Iterator[Bystander]:
         yield watcher
     watcher.close()
     assert server_log.errors() == [], "\n".join(server_log.errors())
-    assert watcher.unparsable == []
+    assert (watcher.dashboard.unparsable, watcher.dashboard.closed_with) == (0, None)
     kept = app.state.live.receptions.poses(public_receiver_id("bystander"))
     assert [row[0] for row in kept] == list(range(1, watcher.sent + 1))
 
@@ -305,4 +290,4 @@ def test_transmitter_socket_fuzz_keeps_only_statuses_receivers_follow(
 
 def test_the_fuzz_reached_the_dashboard(bystander: Bystander) -> None:
     """Runs after the fuzz of this module (pytest keeps file order)."""
-    assert bystander.sent > 0 and bystander.updates > 0
+    assert bystander.sent > 0 and bystander.dashboard.updates

@@ -30,8 +30,9 @@ RETRY_AFTER_S = 2
 
 
 class UploadBudget:
-    """The bytes of upload bodies the server holds at once, over all requests: without it,
-    eight concurrent uploads of 64 MiB held 1.2 GB. Used from the event loop's thread only."""
+    """The bytes of upload bodies the server holds at once, over all requests, so that
+    concurrent uploads cannot take memory without bound. Used from the event loop's thread
+    only."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
