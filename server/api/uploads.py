@@ -24,8 +24,6 @@ from eventocc.server.api.schemas import MessageText
 
 WRAPPER_SLACK = 64 * 1024
 UPLOAD_MEDIA_TYPES = ("application/octet-stream", "multipart/form-data", "application/json")
-
-
 RETRY_AFTER_S = 2
 
 
@@ -49,6 +47,8 @@ class UploadBudget:
 
 
 class Claim:
+    """One request's share of the budget."""
+
     def __init__(self, budget: UploadBudget) -> None:
         self.budget = budget
         self.size = 0
