@@ -16,6 +16,9 @@ from dataclasses import dataclass
 
 PROFILE_NAMES = ("paper", "robust", "fast")
 DEFAULT_PROFILE = "robust"
+MIN_REFRESH_HZ, MAX_REFRESH_HZ = 1.0, 1000.0
+"""The display refresh rates a link may run at: what the receiver and the simulator are built
+for."""
 
 
 @dataclass(frozen=True)

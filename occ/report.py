@@ -18,8 +18,12 @@ from eventocc.occ.stream import ReceivedMessage
 
 PROTOCOL_VERSION = 1
 
+INT64_MAX = 2**63 - 1
+"""Integers are 64-bit signed, as the server stores them (SQLite) and event times are."""
+
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]
-Count = Annotated[int, Field(ge=0)]
+Count = Annotated[int, Field(ge=0, le=INT64_MAX)]
+Micros = Annotated[int, Field(ge=-INT64_MAX - 1, le=INT64_MAX)]
 
 
 class _Model(BaseModel):
@@ -38,15 +42,28 @@ class TrackingState(StrEnum):
 class Hello(_Model):
     type: Literal["hello"] = "hello"
     receiver_id: str = Field(min_length=1, max_length=128)
+    """The receiver's own secret name (the daemon draws 16 random hex digits once per output
+    folder): presenting it again is what makes a reconnecting receiver the same one, so the
+    server never shows it; it shows ``public_id``."""
     token: str | None = None
     version: int = PROTOCOL_VERSION
+
+    @property
+    def public_id(self) -> str:
+        return public_receiver_id(self.receiver_id)
+
+
+def public_receiver_id(receiver_id: str) -> str:
+    """The name the server shows for the receiver that says ``receiver_id`` in its Hello: a
+    digest, so that seeing it does not let anyone speak as that receiver."""
+    return hashlib.sha256(f"eventocc receiver {receiver_id}".encode()).hexdigest()[:16]
 
 
 class PoseReport(_Model):
     """``T_world_cam``: the camera's pose in the marker frame (metres)."""
 
     type: Literal["pose"] = "pose"
-    t_us: int
+    t_us: Micros
     position: tuple[float, float, float]
     quaternion_xyzw: tuple[float, float, float, float]
     state: TrackingState
@@ -54,7 +71,7 @@ class PoseReport(_Model):
 
 class FrameStats(_Model):
     type: Literal["frame"] = "frame"
-    t_us: int
+    t_us: Micros
     frame_index: Count
     bits_read: Count
     confidence_mean: Unit
@@ -165,7 +182,7 @@ class SurfaceReport(_Model):
     row-major, base64 (255 = an event just now, fading to 0)."""
 
     type: Literal["surface"] = "surface"
-    t_us: int
+    t_us: Micros
     width: Annotated[int, Field(ge=1, le=256)]
     height: Annotated[int, Field(ge=1, le=256)]
     pixels_b64: str

@@ -6,12 +6,14 @@ hash to the digest their sender sent in-band, and the uploaded message with the 
 any. Poses are kept at the rate the receiver publishes them (decimated for the UI), so a
 trajectory survives a server restart. Each receiver numbers its reports; the server remembers
 the highest number it has stored per receiver, so a report replayed from the receiver's spool
-after a reconnect is acknowledged again but stored once.
+after a reconnect is acknowledged again but stored once. Receivers are kept under their public id
+(``eventocc.occ.report.public_receiver_id``), never under the secret one they connect with.
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 import secrets
 import sqlite3
 import threading
@@ -20,6 +22,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+
+from eventocc.occ.report import public_receiver_id
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS receivers (
@@ -49,10 +53,28 @@ CREATE TABLE IF NOT EXISTS receiver_poses (
     PRIMARY KEY (receiver, t_us)
 ) WITHOUT ROWID;
 """
+SCHEMA_VERSION = 1
+"""``PRAGMA user_version``: 0 kept receivers under the secret id they connect with, 1 under
+their public id."""
+RECEIVER_COLUMNS = (("receivers", "id"), ("receptions", "receiver"), ("receiver_poses", "receiver"))
 COLUMNS = "id, receiver, seq, name, sha256, size, goodput_bps, message_id, received, verified"
 
 PoseRow = tuple[int, float, float, float, float, float, float, float]
 """``(t_us, tx, ty, tz, qx, qy, qz, qw)``: a TUM row with the time in microseconds."""
+
+
+def _finite(value: float | None) -> bool:
+    return value is not None and math.isfinite(value)
+
+
+def _keep_public_ids(db: sqlite3.Connection) -> None:
+    """Rename every receiver kept under its secret id to its public id."""
+    for (secret,) in db.execute("SELECT id FROM receivers").fetchall():
+        for table, column in RECEIVER_COLUMNS:
+            db.execute(
+                f"UPDATE {table} SET {column} = ? WHERE {column} = ?",
+                (public_receiver_id(secret), secret),
+            )
 
 
 def _mark(db: sqlite3.Connection, receiver: str, seq: int) -> None:
@@ -114,6 +136,9 @@ class ReceptionStore:
             columns = {r["name"] for r in db.execute("PRAGMA table_info(receptions)")}
             if "verified" not in columns:  # a database from before the column
                 db.execute("ALTER TABLE receptions ADD COLUMN verified INTEGER")
+            if db.execute("PRAGMA user_version").fetchone()[0] < 1:
+                _keep_public_ids(db)
+            db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
 
     def close(self) -> None:
         with self._lock:
@@ -227,17 +252,20 @@ class ReceptionStore:
             )
             _mark(db, receiver, seq)
 
-    def poses(
-        self, receiver: str
-    ) -> list[tuple[int, float, float, float, float, float, float, float]]:
-        """All kept poses of ``receiver`` in time order, as TUM rows with t in microseconds."""
+    def poses(self, receiver: str) -> list[PoseRow] | None:
+        """All kept poses of ``receiver`` in time order, as TUM rows with t in microseconds;
+        None for a receiver that never connected."""
         with self._transaction() as db:
+            if db.execute("SELECT 1 FROM receivers WHERE id = ?", (receiver,)).fetchone() is None:
+                return None
             rows = db.execute(
                 "SELECT t_us, tx, ty, tz, qx, qy, qz, qw FROM receiver_poses "
                 "WHERE receiver = ? ORDER BY t_us",
                 (receiver,),
             ).fetchall()
-        return [tuple(row) for row in rows]
+        # Servers before ``/ws/receiver`` took strict JSON kept non-finite poses (a NaN reads
+        # back as NULL): not poses.
+        return [tuple(row) for row in rows if all(_finite(v) for v in row[1:])]
 
     def totals(self) -> tuple[int, int]:
         """(receptions, their bytes), for the metrics."""

@@ -10,17 +10,17 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
 
 import pytest
 
-from eventocc.occ.report import MessageReport, PoseReport, TrackingState
+from eventocc.occ.report import MessageReport, PoseReport, TrackingState, public_receiver_id
 from eventocc.occ.stream import ReceivedMessage
 from eventocc.receiver.live.publisher import Publisher
 from eventocc.receiver.live.spool import Spool
+from tests.live_clients import wait_until
 
 TOKEN = "fault-token"
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,14 +35,6 @@ def free_port() -> int:
 def get_json(url: str) -> dict:
     with urllib.request.urlopen(url, timeout=5) as response:
         return json.load(response)
-
-
-def wait_until(condition, timeout_s: float = 30.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 class ServerProcess:
@@ -135,7 +127,7 @@ def test_server_killed_and_restarted_mid_stream_loses_nothing(server_process, tm
     assert names == [f"m{i}.txt" for i in range(6)], "every message exactly once"
     assert publisher.stats.connections == 2
     with urllib.request.urlopen(
-        f"{server_process.url}/api/receivers/{spool.receiver_id}/trajectory"
+        f"{server_process.url}/api/receivers/{public_receiver_id(spool.receiver_id)}/trajectory"
     ) as response:
         rows = response.read().decode().splitlines()[1:]
     assert [row.split()[0] for row in rows] == [f"0.0{i}0000" for i in range(6)]
@@ -148,6 +140,7 @@ sys.path.insert(0, {tests!r})
 from test_live_faults import message
 from eventocc.receiver.live.publisher import Publisher
 from eventocc.receiver.live.spool import Spool
+from tests.live_clients import wait_until
 
 spool = Spool(Path({out!r}) / "spool.db")
 publisher = Publisher({url!r}, spool, token={token!r}, backoff_s=(0.05, 0.5)).start()

@@ -95,7 +95,7 @@ const handlers = {
     drawSurface(u);
   },
   receivers(u) {
-    const ids = u.receivers.map((r) => r.receiver_id);
+    const ids = u.receivers.map((r) => r.receiver);
     $("receivers").textContent = ids.length ? `receivers: ${ids.join(", ")}` : "no receiver connected";
   },
   transmitter(u) {
