@@ -33,7 +33,6 @@ from eventocc.receiver.live.daemon import (
     LinkFollower,
     OutputFolder,
     Screen,
-    describe,
 )
 from eventocc.receiver.live.screen import ScreenWatch, TransmitterClient
 from eventocc.receiver.live.sources import EventSource, RecordingSource, SourceError
@@ -151,7 +150,7 @@ def _screen(source: EventSource, server_url: str) -> tuple[Screen | None, LinkSe
     camera knows what it simulates; a live camera is taken to watch the server's transmitter
     page; a recording shows whatever it recorded (the defaults, unless pinned)."""
     if isinstance(source, VirtualCamera):
-        return source, source.server.link_settings()
+        return source, source.server.link_settings(DEFAULT_LINK)
     if isinstance(source, RecordingSource):
         return None, DEFAULT_LINK
     watch = ScreenWatch(TransmitterClient(server_url), DEFAULT_LINK).start()
@@ -214,7 +213,7 @@ def _run(args: argparse.Namespace) -> int:
         "receiver %s: %s, %s -> %s; output in %s",
         spool.receiver_id,
         args.source,
-        describe(follower.receiving),
+        follower.receiving,
         args.server,
         output.root,
     )

@@ -124,31 +124,37 @@ class LinkFollower:
     def settings_for(self, sending: LinkSettings) -> LinkSettings:
         profile, cells, refresh_hz = self.pinned
         return LinkSettings(
-            profile or sending.profile, cells or sending.cells, refresh_hz or sending.refresh_hz
+            sending.profile if profile is None else profile,
+            sending.cells if cells is None else cells,
+            sending.refresh_hz if refresh_hz is None else refresh_hz,
         )
 
     def pipeline(self) -> Pipeline:
         return self.build(self.receiving)
 
     def follow(self, sending: LinkSettings) -> Pipeline | None:
-        """A pipeline rebuilt for ``sending``, or None if the current one still fits."""
+        """A pipeline rebuilt for ``sending``, or None if the current one still fits or none
+        can be built for it (said in the log: the receiver goes on as it was)."""
         wanted = self.settings_for(sending)
         if wanted != sending:
             log.warning(
                 "the transmitter sends %s but the receiver is pinned to %s: drop "
                 "--profile/--cells/--refresh-hz to follow it",
-                describe(sending),
-                describe(wanted),
+                sending,
+                wanted,
             )
         if wanted == self.receiving:
             return None
-        log.info("the transmitter switched to %s: rebuilding the receiver", describe(wanted))
+        log.info("the transmitter switched to %s: rebuilding the receiver", wanted)
+        try:
+            pipeline = self.build(wanted)
+        except ValueError as error:
+            log.error(
+                "cannot build a receiver for %s (%s); keeping %s", wanted, error, self.receiving
+            )
+            return None
         self.receiving = wanted
-        return self.pipeline()
-
-
-def describe(link: LinkSettings) -> str:
-    return f"{link.profile} with {link.cells} cells at {link.refresh_hz:g} Hz"
+        return pipeline
 
 
 @dataclass
