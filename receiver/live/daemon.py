@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import base64
 import logging
+import os
 import sys
 import threading
 import time
@@ -204,10 +205,38 @@ class OutputFolder:
         partial.replace(self.root / "health.json")  # atomic: readers never see half a file
 
     def save_message(self, name: str, sha256: str, data: bytes) -> Path:
-        # The digest prefix keeps two messages of the same name apart; the name is never a path.
-        path = self.messages / f"{sha256[:12]}-{Path(name).name or 'message'}"
+        path = self.messages / message_file_name(name, sha256, _name_max(self.messages))
         path.write_bytes(data)
         return path
+
+
+NAME_MAX = 255
+"""Bytes in a file name on Linux's and macOS's file systems, where the system does not say."""
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or no answer
+        return NAME_MAX
+
+
+def message_file_name(name: str, sha256: str, name_max: int = NAME_MAX) -> str:
+    """``<digest prefix>-<name>``: the prefix keeps two messages of the same name apart; the
+    name is never a path, holds no control characters, and is cut (its extension kept, if
+    short) to fit ``name_max`` bytes of UTF-8: a message name may be 255 bytes by itself."""
+    prefix = f"{sha256[:12]}-"
+    base = "".join("_" if ord(c) < 32 or c == "\x7f" else c for c in Path(name).name)
+    if base in ("", ".", ".."):
+        base = "message"
+    room = name_max - len(prefix)
+    if len(base.encode()) > room:
+        stem, dot, extension = base.rpartition(".")
+        extension = f".{extension}" if dot and stem and len(extension.encode()) <= 16 else ""
+        stem = base[: len(base) - len(extension)]
+        keep = room - len(extension.encode())
+        base = stem.encode()[:keep].decode(errors="ignore") + extension
+    return prefix + base
 
 
 class Daemon:
@@ -313,11 +342,22 @@ class Daemon:
         self.sink.publish(report, durable=True)
 
     def publish_message(self, out: MessageOutput) -> None:
+        """Spool the message for the server first, then keep a copy in the output folder: a
+        copy that cannot be written (a full disk) is logged, and loses nothing else."""
         message = out.message
-        path = self.output.save_message(message.name, message.sha256, message.data)
-        log.info("message %r complete (%d bytes) -> %s", message.name, len(message.data), path)
         self.summary.messages.append(message.sha256)
         self.sink.publish(MessageReport.of(message), durable=True)
+        try:
+            path = self.output.save_message(message.name, message.sha256, message.data)
+        except OSError as error:
+            log.error(
+                "message %r complete (%d bytes), but not saved: %s",
+                message.name,
+                len(message.data),
+                error,
+            )
+            return
+        log.info("message %r complete (%d bytes) -> %s", message.name, len(message.data), path)
 
     def frame_stats(self, out: FrameOutput) -> FrameStats:
         read = out.read
