@@ -35,7 +35,7 @@ from eventocc.receiver.live.daemon import (
     Screen,
 )
 from eventocc.receiver.live.screen import ScreenWatch, TransmitterClient
-from eventocc.receiver.live.sources import EventSource, RecordingSource, SourceError
+from eventocc.receiver.live.sources import EventSource, RecordingSource
 from eventocc.receiver.live.uri import open_source
 from eventocc.receiver.live.virtual_camera import DEFAULT_MOTION, MOTIONS, VirtualCamera
 
@@ -119,14 +119,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    try:
-        return _run(args)
-    except (SourceError, OSError, ValueError) as error:
-        print(f"eventocc-receiver receive: error: {error}", file=sys.stderr)
-        return 2
-
-
 def websocket_url(http_url: str) -> str:
     if not http_url.startswith(("http://", "https://")):
         raise ValueError(f"--server must be an http:// or https:// URL, got {http_url!r}")
@@ -157,7 +149,7 @@ def _screen(source: EventSource, server_url: str) -> tuple[Screen | None, LinkSe
     return watch, watch.link
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     from eventocc.receiver.live.publisher import Publisher
     from eventocc.receiver.live.spool import Spool
     from eventocc.receiver.pipeline.config import LIVE_CPU_SHARE, DetectorParams, ReceiverConfig
