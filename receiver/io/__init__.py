@@ -8,6 +8,12 @@ npz, hdf5, text.
 The format is found from the file's content first (RAW/DAT header, AEDAT4, bag, HDF5, zip or
 SQLite magic), then from its extension. A file whose content says one format and extension
 another is read by its content, with a logged warning. ``format=`` overrides both.
+
+Whatever a file holds, reading it ends in events or an ``EventFileError``: what the
+third-party decoders raise is turned into one (``errors.foreign_errors``), and memory stays
+bounded: files are read in blocks, and npz and HDF5 files whose columns would inflate to more
+than ``stream.MAX_INFLATION`` times their size are refused (``EVENTOCC_MAX_INFLATION`` allows
+more).
 """
 
 from __future__ import annotations
