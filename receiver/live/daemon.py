@@ -231,11 +231,11 @@ def message_file_name(name: str, sha256: str, name_max: int = NAME_MAX) -> str:
         base = "message"
     room = name_max - len(prefix)
     if len(base.encode()) > room:
-        stem, dot, extension = base.rpartition(".")
-        extension = f".{extension}" if dot and stem and len(extension.encode()) <= 16 else ""
-        stem = base[: len(base) - len(extension)]
-        keep = room - len(extension.encode())
-        base = stem.encode()[:keep].decode(errors="ignore") + extension
+        stem, dot, suffix = base.rpartition(".")
+        if not (stem and len(suffix.encode()) <= 16):
+            stem, dot, suffix = base, "", ""
+        room -= len((dot + suffix).encode())
+        base = stem.encode()[:room].decode(errors="ignore") + dot + suffix
     return prefix + base
 
 
