@@ -56,11 +56,11 @@ def _bag(storage: str) -> Callable[[Path], Path]:
         events["t"] += 1_700_000_000_000_000
         path = folder / ("f.bag" if storage == "ros1" else "bag2")
         write_bag(path, storage, "dvs_msgs", [events[:40], events[40:80], events[80:]], 32, 24)
-        return (
-            path
-            if storage == "ros1"
-            else next(path.glob("*.db3"), None) or next(path.glob("*.mcap"))
-        )
+        if storage == "ros1":
+            return path
+        # A ROS 2 bag's storage file, which rosbags reads without its folder.
+        (storage_file,) = path.glob("*.db3" if storage == "sqlite3" else "*.mcap")
+        return storage_file
 
     return write
 
