@@ -12,7 +12,10 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+
+from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
 
 PROFILE_NAMES = ("paper", "robust", "fast")
 DEFAULT_PROFILE = "robust"
@@ -52,18 +55,19 @@ PROFILES = {
 
 
 def get_profile(name: str) -> LinkProfile:
-    try:
-        return PROFILES[name]
-    except KeyError:
+    if not isinstance(name, str) or name not in PROFILES:
         raise ValueError(
             f"unknown link profile {name!r}; valid profiles: {', '.join(PROFILE_NAMES)}"
-        ) from None
+        )
+    return PROFILES[name]
 
 
 @dataclass(frozen=True)
 class LinkSettings:
     """What the receiver pipeline must be told about the screen: its link profile, cells and
-    refresh rate."""
+    refresh rate. Only settings a receiver can be built for exist: any others raise
+    ``ValueError`` saying what is wrong, whoever sent them (the settings come over the network
+    from whatever says what the screen shows)."""
 
     profile: str
     cells: int
@@ -72,4 +76,25 @@ class LinkSettings:
     absorbs (it re-times every frame from its own burst) and must not rebuild for."""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "refresh_hz", float(round(self.refresh_hz)))
+        get_profile(self.profile)  # raises with the list of valid names
+        cells, hz = self.cells, self.refresh_hz
+        if not _is_number(cells, int) or not MIN_CELLS <= cells <= MAX_CELLS:
+            raise ValueError(
+                f"cells must be a whole number {MIN_CELLS}..{MAX_CELLS}, got {cells!r}"
+            )
+        if (
+            not _is_number(hz, (int, float))
+            or not math.isfinite(hz)
+            or not MIN_REFRESH_HZ <= round(hz) <= MAX_REFRESH_HZ
+        ):
+            raise ValueError(
+                f"refresh rate must be {MIN_REFRESH_HZ:g}..{MAX_REFRESH_HZ:g} Hz, got {hz!r}"
+            )
+        object.__setattr__(self, "refresh_hz", float(round(hz)))
+
+    def __str__(self) -> str:
+        return f"{self.profile} with {self.cells} cells at {self.refresh_hz:g} Hz"
+
+
+def _is_number(value: object, kind: type | tuple[type, ...]) -> bool:
+    return isinstance(value, kind) and not isinstance(value, bool)

@@ -51,10 +51,11 @@ class ScriptedPipeline:
     """Stands in for the receiver pipeline: one pose per 250 us of events, a frame per chunk,
     and a message on the chunk given."""
 
-    def __init__(self, message_on_chunk: int = 3) -> None:
+    def __init__(self, message_on_chunk: int = 3, name: str = "a.txt") -> None:
         self.stream = ScriptedStream()
         self.chunks = 0
         self.message_on_chunk = message_on_chunk
+        self.name = name
 
     def push(self, chunk: np.ndarray) -> list:
         self.chunks += 1
@@ -72,7 +73,7 @@ class ScriptedPipeline:
         if self.chunks == self.message_on_chunk:
             data = b"the scripted message"
             digest = hashlib.sha256(data).hexdigest()
-            out.append(MessageOutput(t1, ReceivedMessage("a.txt", data, digest, 5, "robust")))
+            out.append(MessageOutput(t1, ReceivedMessage(self.name, data, digest, 5, "robust")))
         return out
 
     def finish(self) -> list:
@@ -111,11 +112,13 @@ def chunk(t0_us: int, t1_us: int, n: int = 200, seed: int = 0) -> np.ndarray:
     return make_events(t, rng.integers(0, 64, n), rng.integers(0, 48, n), rng.integers(0, 2, n))
 
 
-def run_daemon(tmp_path, chunks: list[np.ndarray], **config) -> tuple[Daemon, ListSink]:
+def run_daemon(
+    tmp_path, chunks: list[np.ndarray], pipeline: ScriptedPipeline | None = None, **config
+) -> tuple[Daemon, ListSink]:
     sink = ListSink()
     daemon = Daemon(
         ListSource(chunks),
-        ScriptedPipeline(),
+        pipeline or ScriptedPipeline(),
         sink,
         OutputFolder(tmp_path / "out"),
         DaemonConfig(**config),
@@ -143,6 +146,46 @@ def test_finished_messages_are_saved_and_reported_durably(tmp_path) -> None:
     assert (report, True) in sink.reports
     (saved,) = (tmp_path / "out" / "messages").iterdir()
     assert saved.read_bytes() == b"the scripted message" and saved.name.endswith("-a.txt")
+
+
+LONG = "n" * 251 + ".txt"  # 255 bytes: legal, and 268 with the digest prefix
+
+
+@pytest.mark.parametrize(
+    ("name", "ending"),
+    [
+        (LONG, "n.txt"),
+        ("n" * 243, "nnn"),
+        ("é" * 127 + ".bin", "é.bin"),  # 258 bytes of UTF-8: cut between characters
+        ("\U0001f600" * 63 + "x", "\U0001f600"),
+        ("a\x00b\x1f.txt", "a_b_.txt"),
+        ("../../etc/passwd", "-passwd"),
+        ("..", "-message"),
+        ("", "-message"),
+    ],
+)
+def test_any_legal_message_name_is_saved(tmp_path, name: str, ending: str) -> None:
+    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(4)]
+    _, sink = run_daemon(tmp_path, chunks, ScriptedPipeline(name=name))
+    assert sink.of(MessageReport)[0].name == name
+    (saved,) = (tmp_path / "out" / "messages").iterdir()
+    assert saved.read_bytes() == b"the scripted message"
+    assert len(saved.name.encode()) <= 255 and saved.name.endswith(ending)
+
+
+def test_a_message_that_cannot_be_saved_is_still_reported(tmp_path, caplog) -> None:
+    """The server's copy goes first: a full disk (here, no folder to write to) loses nothing
+    durable and stops nothing."""
+    output = OutputFolder(tmp_path / "out")
+    output.messages.rmdir()
+    output.messages.write_text("not a folder")
+    sink = ListSink()
+    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(6)]
+    daemon = Daemon(ListSource(chunks), ScriptedPipeline(), sink, output)
+    daemon.run()
+    assert [r.name for r in sink.of(MessageReport)] == ["a.txt"]
+    assert daemon.summary.chunks == 6
+    assert "message 'a.txt' complete (20 bytes), but not saved" in caplog.text
 
 
 def test_news_is_ephemeral_and_well_formed(tmp_path) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -124,3 +125,24 @@ def test_screen_watch_follows_the_page_and_survives_an_absent_server(serve_app, 
     nobody = ScreenWatch(TransmitterClient("http://127.0.0.1:9"), LinkSettings("paper", 8))
     assert nobody.link == LinkSettings("paper", 8)
     assert "assuming" in caplog.text and "until it answers" in caplog.text
+
+
+def test_receive_waits_for_a_server_that_is_down_at_its_start(serve_app, tmp_path) -> None:
+    with socket.socket() as sock:  # a free port, nobody listening yet
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    base_url = f"http://127.0.0.1:{port}"
+    daemon = DaemonProcess(base_url, tmp_path / "out")
+    try:
+        daemon.wait_for("assuming robust with 16 cells at 60 Hz until it answers")
+        daemon.wait_for("virtual camera waiting: server unreachable")
+        daemon.wait_for("retrying in 0.", timeout_s=10)  # the publisher backs off
+        serve_app(port=port)
+        message = post(base_url, "/api/messages?name=a.txt&profile=fast&cells=12", {"text": "a"})
+        play(base_url, message)
+        daemon.wait_for(f"watching message {message['id']} (fast, 12 cells, 60.0 Hz)")
+        daemon.wait_for("switched to fast with 12 cells at 60 Hz: rebuilding")
+        daemon.wait_for(f"connected to ws://127.0.0.1:{port}/ws/receiver")
+    finally:
+        log = daemon.stop()
+    assert daemon.process.returncode == 0, log

@@ -14,7 +14,7 @@ def run(args: argparse.Namespace) -> int:
         width = args.width or stream.width
         height = args.height or stream.height
         if not width or not height:
-            raise SystemExit(
+            raise ValueError(
                 f"{args.input} does not state its sensor size; pass --width and --height"
             )
         with tqdm(

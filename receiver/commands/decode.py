@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 from pathlib import Path
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
@@ -97,14 +96,6 @@ def _camera(args: argparse.Namespace, scene):
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        return _run(args)
-    except (OSError, ValueError) as exc:  # bad files and options: say what, no traceback
-        print(f"eventocc-receiver decode: error: {exc}", file=sys.stderr)
-        return 2
-
-
-def _run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from eventocc.receiver.io import read_events

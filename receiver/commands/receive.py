@@ -39,10 +39,9 @@ from eventocc.receiver.live.daemon import (
     LinkFollower,
     OutputFolder,
     Screen,
-    describe,
 )
 from eventocc.receiver.live.screen import ScreenWatch, TransmitterClient
-from eventocc.receiver.live.sources import EventSource, RecordingSource, SourceError
+from eventocc.receiver.live.sources import EventSource, RecordingSource
 from eventocc.receiver.live.uri import open_source
 from eventocc.receiver.live.virtual_camera import DEFAULT_MOTION, MOTIONS, VirtualCamera
 
@@ -128,14 +127,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    try:
-        return _run(args)
-    except (SourceError, OSError, ValueError) as error:
-        print(f"eventocc-receiver receive: error: {error}", file=sys.stderr)
-        return 2
-
-
 def websocket_url(http_url: str) -> str:
     if not http_url.startswith(("http://", "https://")):
         raise ValueError(f"--server must be an http:// or https:// URL, got {http_url!r}")
@@ -159,14 +150,14 @@ def _screen(source: EventSource, server_url: str) -> tuple[Screen | None, LinkSe
     camera knows what it simulates; a live camera is taken to watch the server's transmitter
     page; a recording shows whatever it recorded (the defaults, unless pinned)."""
     if isinstance(source, VirtualCamera):
-        return source, source.server.link_settings()
+        return source, source.server.link_settings(DEFAULT_LINK)
     if isinstance(source, RecordingSource):
         return None, DEFAULT_LINK
     watch = ScreenWatch(TransmitterClient(server_url), DEFAULT_LINK).start()
     return watch, watch.link
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     from eventocc.receiver.live.publisher import Publisher
     from eventocc.receiver.live.spool import Spool
     from eventocc.receiver.pipeline.config import LIVE_CPU_SHARE, DetectorParams, ReceiverConfig
@@ -223,7 +214,7 @@ def _run(args: argparse.Namespace) -> int:
         "receiver %s: %s, %s -> %s; output in %s",
         spool.receiver_id,
         args.source,
-        describe(follower.receiving),
+        follower.receiving,
         args.server,
         output.root,
     )

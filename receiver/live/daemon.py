@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import base64
 import logging
+import os
 import sys
 import threading
 import time
@@ -124,31 +125,37 @@ class LinkFollower:
     def settings_for(self, sending: LinkSettings) -> LinkSettings:
         profile, cells, refresh_hz = self.pinned
         return LinkSettings(
-            profile or sending.profile, cells or sending.cells, refresh_hz or sending.refresh_hz
+            sending.profile if profile is None else profile,
+            sending.cells if cells is None else cells,
+            sending.refresh_hz if refresh_hz is None else refresh_hz,
         )
 
     def pipeline(self) -> Pipeline:
         return self.build(self.receiving)
 
     def follow(self, sending: LinkSettings) -> Pipeline | None:
-        """A pipeline rebuilt for ``sending``, or None if the current one still fits."""
+        """A pipeline rebuilt for ``sending``, or None if the current one still fits or none
+        can be built for it (said in the log: the receiver goes on as it was)."""
         wanted = self.settings_for(sending)
         if wanted != sending:
             log.warning(
                 "the transmitter sends %s but the receiver is pinned to %s: drop "
                 "--profile/--cells/--refresh-hz to follow it",
-                describe(sending),
-                describe(wanted),
+                sending,
+                wanted,
             )
         if wanted == self.receiving:
             return None
-        log.info("the transmitter switched to %s: rebuilding the receiver", describe(wanted))
+        log.info("the transmitter switched to %s: rebuilding the receiver", wanted)
+        try:
+            pipeline = self.build(wanted)
+        except ValueError as error:
+            log.error(
+                "cannot build a receiver for %s (%s); keeping %s", wanted, error, self.receiving
+            )
+            return None
         self.receiving = wanted
-        return self.pipeline()
-
-
-def describe(link: LinkSettings) -> str:
-    return f"{link.profile} with {link.cells} cells at {link.refresh_hz:g} Hz"
+        return pipeline
 
 
 @dataclass
@@ -198,10 +205,38 @@ class OutputFolder:
         partial.replace(self.root / "health.json")  # atomic: readers never see half a file
 
     def save_message(self, name: str, sha256: str, data: bytes) -> Path:
-        # The digest prefix keeps two messages of the same name apart; the name is never a path.
-        path = self.messages / f"{sha256[:12]}-{Path(name).name or 'message'}"
+        path = self.messages / message_file_name(name, sha256, _name_max(self.messages))
         path.write_bytes(data)
         return path
+
+
+NAME_MAX = 255
+"""Bytes in a file name on Linux's and macOS's file systems, where the system does not say."""
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or no answer
+        return NAME_MAX
+
+
+def message_file_name(name: str, sha256: str, name_max: int = NAME_MAX) -> str:
+    """``<digest prefix>-<name>``: the prefix keeps two messages of the same name apart; the
+    name is never a path, holds no control characters, and is cut (its extension kept, if
+    short) to fit ``name_max`` bytes of UTF-8: a message name may be 255 bytes by itself."""
+    prefix = f"{sha256[:12]}-"
+    base = "".join("_" if ord(c) < 32 or c == "\x7f" else c for c in Path(name).name)
+    if base in ("", ".", ".."):
+        base = "message"
+    room = name_max - len(prefix)
+    if len(base.encode()) > room:
+        stem, dot, suffix = base.rpartition(".")
+        if not (stem and len(suffix.encode()) <= 16):
+            stem, dot, suffix = base, "", ""
+        room -= len((dot + suffix).encode())
+        base = stem.encode()[:room].decode(errors="ignore") + dot + suffix
+    return prefix + base
 
 
 class Daemon:
@@ -307,11 +342,22 @@ class Daemon:
         self.sink.publish(report, durable=True)
 
     def publish_message(self, out: MessageOutput) -> None:
+        """Spool the message for the server first, then keep a copy in the output folder: a
+        copy that cannot be written (a full disk) is logged, and loses nothing else."""
         message = out.message
-        path = self.output.save_message(message.name, message.sha256, message.data)
-        log.info("message %r complete (%d bytes) -> %s", message.name, len(message.data), path)
         self.summary.messages.append(message.sha256)
         self.sink.publish(MessageReport.of(message), durable=True)
+        try:
+            path = self.output.save_message(message.name, message.sha256, message.data)
+        except OSError as error:
+            log.error(
+                "message %r complete (%d bytes), but not saved: %s",
+                message.name,
+                len(message.data),
+                error,
+            )
+            return
+        log.info("message %r complete (%d bytes) -> %s", message.name, len(message.data), path)
 
     def frame_stats(self, out: FrameOutput) -> FrameStats:
         read = out.read

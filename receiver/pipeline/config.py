@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 from eventocc.occ.marker import MarkerGeometry
-from eventocc.occ.profiles import get_profile
+from eventocc.occ.profiles import MAX_REFRESH_HZ, MIN_REFRESH_HZ, get_profile
 from eventocc.receiver.camera import CameraModel
 
 
@@ -263,8 +263,9 @@ class ReceiverConfig:
 
     def __post_init__(self) -> None:
         get_profile(self.profile)  # raises with the list of valid names
-        if not 1.0 <= self.refresh_hz <= 1000.0:
-            raise ValueError(f"refresh rate must be 1..1000 Hz, got {self.refresh_hz}")
+        if not MIN_REFRESH_HZ <= self.refresh_hz <= MAX_REFRESH_HZ:
+            hz_range = f"{MIN_REFRESH_HZ:g}..{MAX_REFRESH_HZ:g}"
+            raise ValueError(f"refresh rate must be {hz_range} Hz, got {self.refresh_hz}")
         if self.marker_size_m <= 0:
             raise ValueError(f"marker size must be positive metres, got {self.marker_size_m}")
         if self.pose_smoothing_us < 0:
