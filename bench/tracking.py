@@ -22,7 +22,7 @@ from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.pipeline.config import ReceiverConfig, TrackerParams
 from eventocc.receiver.pipeline.metrics import held_s, pose_errors
 from eventocc.receiver.pipeline.receiver import Receiver
-from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.report import FrameTruth, decode_events
 from eventocc.receiver.sim import Display, HandHeldMotion, Scene, SensorModel, simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
@@ -66,12 +66,9 @@ def hand_held_config() -> ReceiverConfig:
 
 def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
     scene = hand_held_scene(flow_px_per_ms, seed)
-    rx = Receiver(hand_held_config())
-    log = DecodeLog(rx, FrameTruth(scene.encoder, 60.0))
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
-    for chunk in rec:
-        log.add(rx.push(chunk))
-    log.add(rx.finish())
+    rx = Receiver(hand_held_config())
+    log = decode_events(rx, rec, FrameTruth(scene.encoder, 60.0))
     row = {
         "flow": flow_px_per_ms,
         "seed": seed,

@@ -15,7 +15,7 @@ from eventocc.receiver.events import make_events
 from eventocc.receiver.pipeline.config import DecoderParams, ReceiverConfig
 from eventocc.receiver.pipeline.metrics import pose_errors
 from eventocc.receiver.pipeline.receiver import Receiver
-from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.report import FrameTruth, decode_events
 from eventocc.receiver.sim import (
     Display,
     HandHeldMotion,
@@ -46,15 +46,12 @@ def _run(
         "refresh_hz": scene.display.refresh_hz,
     }
     config = ReceiverConfig(scene.camera, **{**link, **told})
-    rx = Receiver(config, message_size=message_size)
-    log = DecodeLog(rx, FrameTruth(enc, scene.display.refresh_hz, scene.start_refresh))
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
-    for chunk in rec:
-        if drop_us is not None:
-            chunk = chunk[(chunk["t"] < drop_us[0]) | (chunk["t"] >= drop_us[1])]
-        log.add(rx.push(chunk))
-    log.add(rx.finish())
-    return log, rec
+    chunks = iter(rec)
+    if drop_us is not None:
+        chunks = (c[(c["t"] < drop_us[0]) | (c["t"] >= drop_us[1])] for c in chunks)
+    truth = FrameTruth(enc, scene.display.refresh_hz, scene.start_refresh)
+    return decode_events(Receiver(config, message_size=message_size), chunks, truth), rec
 
 
 def _scene(

@@ -5,12 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+from collections.abc import Iterator
 from pathlib import Path
+
+import numpy as np
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.receiver import Receiver
-from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.report import FrameTruth, decode_events
 
 log = logging.getLogger(__name__)
 
@@ -125,22 +128,23 @@ def run(args: argparse.Namespace) -> int:
     truth = None
     if scene is not None:
         truth = FrameTruth(scene.encoder, scene.display.refresh_hz, scene.start_refresh)
-    decoded = DecodeLog(receiver, truth)
     with tqdm(total=stream.size or None, unit="B", unit_scale=True, desc="decode") as bar:
-        for chunk in stream:
-            if len(chunk) and (
-                chunk["x"].max() >= camera.width or chunk["y"].max() >= camera.height
-            ):
-                raise ValueError(
-                    f"events beyond the calibrated {camera.width}x{camera.height} "
-                    "sensor; pass the matching --calibration"
-                )
-            decoded.add(receiver.push(chunk))
-            bar.update(stream.position - bar.n)
-    decoded.add(receiver.finish())
+        decoded = decode_events(receiver, _checked(stream, camera, bar), truth)
     report = decoded.write(args.out)
     _summarise(report)
     return 0 if report["messages"] else 1
+
+
+def _checked(stream, camera, bar) -> Iterator[np.ndarray]:
+    """The stream's chunks, each checked against the calibrated sensor, with progress shown."""
+    for chunk in stream:
+        if len(chunk) and (chunk["x"].max() >= camera.width or chunk["y"].max() >= camera.height):
+            raise ValueError(
+                f"events beyond the calibrated {camera.width}x{camera.height} "
+                "sensor; pass the matching --calibration"
+            )
+        yield chunk
+        bar.update(stream.position - bar.n)
 
 
 def _summarise(report: dict) -> None:

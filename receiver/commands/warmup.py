@@ -42,6 +42,7 @@ def warm_up() -> None:
     from eventocc.receiver.io import read_events, write_events
     from eventocc.receiver.pipeline.config import ReceiverConfig
     from eventocc.receiver.pipeline.receiver import Receiver
+    from eventocc.receiver.pipeline.report import decode_events
     from eventocc.receiver.sim import HandHeldMotion, Scene, StaticMotion, simulate
 
     camera = CameraModel.paper().binned(320, 180)
@@ -51,9 +52,7 @@ def warm_up() -> None:
             scene = Scene(encoder=encoder, camera=camera, motion=motion, seed=0)
             receiver = Receiver(ReceiverConfig(camera, cells=16, profile=profile))
             chunks = list(simulate(scene, duration_s=0.15, chunk_us=10_000))
-            for chunk in chunks:
-                receiver.push(chunk)
-            receiver.finish()
+            decode_events(receiver, chunks)
     rs = ReedSolomon(255, 223)
     word = rs.encode(np.zeros((1, 223), np.uint8))
     word[0, :3] ^= 1

@@ -1,14 +1,16 @@
 """What a decoding run produced: poses, frames, messages, and the JSON report about them.
 
-``DecodeLog`` collects a ``Receiver``'s outputs; with a ``FrameTruth`` (from a simulator scene)
-it also scores every frame's bits against what the screen really showed, and every message
-against the bytes really sent.
+``pushes`` is the one decode loop (every chunk pushed, then the finish) that the CLI, the
+benchmarks and the tests share; ``decode_events`` collects what it gives into a ``DecodeLog``,
+which with a ``FrameTruth`` (from a simulator scene) also scores every frame's bits against what
+the screen really showed, and every message against the bytes really sent.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -181,3 +183,25 @@ class DecodeLog:
         report = self.report()
         (out_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
         return report
+
+
+def pushes(
+    receiver: Receiver, chunks: Iterable[np.ndarray]
+) -> Iterator[tuple[np.ndarray | None, list[Output]]]:
+    """``(chunk, outputs)`` for each chunk of a time-sorted stream pushed through ``receiver``,
+    then ``(None, outputs)`` of its finish: the decode loop, for callers that time each push or
+    look at each one's outputs as they come."""
+    for chunk in chunks:
+        yield chunk, receiver.push(chunk)
+    yield None, receiver.finish()
+
+
+def decode_events(
+    receiver: Receiver, chunks: Iterable[np.ndarray], truth: FrameTruth | None = None
+) -> DecodeLog:
+    """Decode a whole stream: every chunk pushed through ``receiver``, its finish, and what
+    came out, collected (and scored against ``truth`` if given)."""
+    log = DecodeLog(receiver, truth)
+    for _, outputs in pushes(receiver, chunks):
+        log.add(outputs)
+    return log
