@@ -49,6 +49,17 @@ def get(base_url: str, path: str) -> bytes:
         return response.read()
 
 
+def post_json(base_url: str, path: str, body: dict) -> dict:
+    request = urllib.request.Request(
+        base_url + path,
+        data=json.dumps(body).encode(),
+        headers={"Content-Type": "application/json"},
+        method="POST",
+    )
+    with urllib.request.urlopen(request, timeout=10) as response:
+        return json.load(response)
+
+
 def upload(base_url: str, data: bytes, name: str = "note.txt") -> dict:
     request = urllib.request.Request(
         f"{base_url}/api/messages?name={name}",

@@ -4,7 +4,6 @@ camera's daemon follows the page through ``ScreenWatch``."""
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -12,32 +11,21 @@ import subprocess
 import sys
 import threading
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
 from eventocc.occ.profiles import LinkSettings
 from eventocc.receiver.live.screen import ScreenWatch, TransmitterClient
+from tests.live_clients import post_json
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def post(base_url: str, path: str, body: dict) -> dict:
-    req = urllib.request.Request(
-        base_url + path,
-        data=json.dumps(body).encode(),
-        headers={"Content-Type": "application/json"},
-        method="POST",
-    )
-    with urllib.request.urlopen(req, timeout=10) as response:
-        return json.load(response)
 
 
 def play(base_url: str, message: dict, refresh_hz: float = 60.0) -> None:
     """Report what a transmitter page showing ``message`` would report."""
     status = {"message_id": message["id"], "profile": message["profile"], "playing": True}
-    post(
+    post_json(
         base_url,
         "/api/transmitter/status",
         {**status, "cells": message["cells"], "frame_index": 0, "refresh_hz": refresh_hz},
@@ -89,8 +77,8 @@ def test_daemon_rebuilds_its_receiver_when_the_transmitter_switches(
     serve_app, tmp_path, pinned: tuple[str, ...]
 ) -> None:
     base_url, _ = serve_app()
-    robust = post(base_url, "/api/messages?name=a.txt&profile=robust&cells=16", {"text": "a"})
-    fast = post(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
+    robust = post_json(base_url, "/api/messages?name=a.txt&profile=robust&cells=16", {"text": "a"})
+    fast = post_json(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
     play(base_url, robust)
     daemon = DaemonProcess(base_url, tmp_path / "out", *pinned)
     try:
@@ -113,7 +101,7 @@ def test_screen_watch_follows_the_page_and_survives_an_absent_server(serve_app, 
     assert watch.link == LinkSettings("robust", 16), "nothing plays: the server's defaults"
     watch.start()
     try:
-        fast = post(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
+        fast = post_json(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
         play(base_url, fast, refresh_hz=143.9)
         deadline = time.monotonic() + 10
         while watch.link != LinkSettings("fast", 12, 144) and time.monotonic() < deadline:
@@ -138,7 +126,9 @@ def test_receive_waits_for_a_server_that_is_down_at_its_start(serve_app, tmp_pat
         daemon.wait_for("virtual camera waiting: server unreachable")
         daemon.wait_for("retrying in 0.", timeout_s=10)  # the publisher backs off
         serve_app(port=port)
-        message = post(base_url, "/api/messages?name=a.txt&profile=fast&cells=12", {"text": "a"})
+        message = post_json(
+            base_url, "/api/messages?name=a.txt&profile=fast&cells=12", {"text": "a"}
+        )
         play(base_url, message)
         daemon.wait_for(f"watching message {message['id']} (fast, 12 cells, 60.0 Hz)")
         daemon.wait_for("switched to fast with 12 cells at 60 Hz: rebuilding")

@@ -36,6 +36,7 @@ from tests.live_clients import (
     get,
     open_receiver,
     pose,
+    post_json,
     strict_json,
     wait_until,
     ws_url,
@@ -382,17 +383,6 @@ def attack(base_url: str, message_id: str, shown_id: str) -> None:
         with contextlib.suppress(ConnectionClosed, TimeoutError):
             while True:
                 rx.recv(10)
-
-
-def post_json(base_url: str, path: str, body: dict) -> dict:
-    request = urllib.request.Request(
-        base_url + path,
-        data=json.dumps(body).encode(),
-        headers={"Content-Type": "application/json"},
-        method="POST",
-    )
-    with urllib.request.urlopen(request, timeout=10) as response:
-        return json.load(response)
 
 
 def test_a_hostile_neighbour_stops_neither_a_streaming_receiver_nor_the_dashboards(
