@@ -524,9 +524,10 @@ class Receiver:
             frame = FrameOutput(
                 read, True, self.stream.verified_bits - verified, self.stream.corrected
             )
-            self.cell_px = cell_side_px(self.config, self.pose_at(np.array([read.t_us]))[0])
+            pose = self.pose_at(np.array([read.t_us]))[0]
+            self.cell_px = cell_side_px(self.config, pose)
             if frame.payload_bits:
-                self._verified = (read.t_us, self.pose_at(np.array([read.t_us]))[0])
+                self._verified = (read.t_us, pose)
             if frame.payload_bits or (not framed and track.turn_leads[-1] >= q.min_turn_lead):
                 track.proven = True
             out.append(frame)
