@@ -57,6 +57,9 @@ class FrameCodec:
         self.frame_bytes = frame_bytes
         sealed = OVERHEAD + self.symbol_size
         self._crc = slice(sealed - FrameHeader.CRC_SIZE, sealed)
+        self.corrected: np.ndarray | None = None
+        """(cells, cells) bool: the cells whose bits the last ``decode`` corrected; None if
+        it returned None."""
 
     def _keyed(self, key: bytes) -> np.ndarray:
         """The keyed whitening of a frame's data bytes, then of its left-over bytes; zero on the
@@ -81,17 +84,27 @@ class FrameCodec:
         self, bits: np.ndarray, confidence: np.ndarray | None = None
     ) -> tuple[FrameHeader, bytes] | None:
         """Header and symbol of a frame read from the cells, or None if it cannot be trusted."""
+        self.corrected = None
         coded = cells_to_bytes(np.asarray(bits, dtype=np.uint8) ^ self.mask, self.coded_bytes)
         erasures = None
         if confidence is not None:
             low = byte_min(confidence, self.coded_bytes) < self.profile.erasure_below
             erasures = deinterleave(low, self.codewords)
-        data, ok = self.rs.decode(deinterleave(coded, self.codewords), erasures)
+        codewords, ok = self.rs.correct(deinterleave(coded, self.codewords), erasures)
         if not ok.all():
             return None
-        data = data.reshape(-1)
+        data = codewords[:, : self.rs.k].reshape(-1)
         data = data ^ self._keyed(data[self._crc].tobytes())[: data.size]
         try:
-            return unseal(data[: self._crc.stop].tobytes())
+            frame = unseal(data[: self._crc.stop].tobytes())
         except FramingError:
             return None
+        self.corrected = self._corrected_cells(coded, interleave(codewords))
+        return frame
+
+    def _corrected_cells(self, received: np.ndarray, corrected: np.ndarray) -> np.ndarray:
+        """(cells, cells) bool: the cells of the coded bytes whose bit the code changed (the
+        left-over cells carry no code: never corrected)."""
+        flips = np.zeros(self.frame_bytes, dtype=np.uint8)
+        flips[: self.coded_bytes] = received ^ corrected
+        return bytes_to_cells(flips, self.cells).astype(bool)

@@ -67,6 +67,10 @@ class PoseReport(_Model):
     position: tuple[float, float, float]
     quaternion_xyzw: tuple[float, float, float, float]
     state: TrackingState
+    verified: bool = False
+    """A frame had proven the lock (CRC passed; ``paper``: its 'L' read clearly) when the pose
+    came out; False: tentative (a wrong lock can look right to every other check). Receivers
+    before this field sent none: their poses count as tentative."""
 
 
 class FrameStats(_Model):
@@ -175,6 +179,11 @@ class HealthReport(_Model):
     below 1 it skips ahead to stay live."""
     camera: CameraReport | None = None
     """A live camera's own readings and link losses (absent for other sources)."""
+    px_per_cell: Annotated[float, Field(ge=0.0)] | None = None
+    """A cell's side in pixels as the camera sees it: at the tracked pose, or while not locked
+    estimated from the latest blinking region detection found (None: nothing seen yet)."""
+    detection_failure: str | None = Field(default=None, max_length=500)
+    """Why the latest detection attempt failed, while not locked."""
 
 
 class SurfaceReport(_Model):
@@ -198,8 +207,43 @@ class SurfaceReport(_Model):
         return self
 
 
+class CellsReport(_Model):
+    """The cells one data frame read, for the dashboard: the ``cells x cells`` bits, row-major,
+    packed (``numpy.packbits``) and base64; for a frame whose Reed-Solomon decoding succeeded,
+    the cells whose bits it corrected, packed the same way."""
+
+    type: Literal["cells"] = "cells"
+    t_us: Micros
+    frame_index: Count
+    cells: Annotated[int, Field(ge=1, le=256)]
+    bits_b64: str
+    corrected_b64: str | None = None
+    """None: the frame did not decode (too many errors, or ``paper``: no per-frame code)."""
+
+    @model_validator(mode="after")
+    def _sizes_match(self) -> Self:
+        packed = -(-self.cells * self.cells // 8)
+        for name in ("bits_b64", "corrected_b64"):
+            text = getattr(self, name)
+            if text is None:
+                continue
+            try:
+                size = len(base64.b64decode(text, validate=True))
+            except binascii.Error as exc:
+                raise ValueError(f"{name} is not valid base64: {exc}") from None
+            if size != packed:
+                raise ValueError(f"{name} holds {size} bytes, not {packed} ({self.cells}^2 bits)")
+        return self
+
+
 Report = Annotated[
-    PoseReport | FrameStats | MessageReport | ProgressReport | HealthReport | SurfaceReport,
+    PoseReport
+    | FrameStats
+    | MessageReport
+    | ProgressReport
+    | HealthReport
+    | SurfaceReport
+    | CellsReport,
     Field(discriminator="type"),
 ]
 _REPORT = TypeAdapter(Report)

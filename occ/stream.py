@@ -297,6 +297,12 @@ class StreamDecoder:
         meta, data = done
         return self._received(meta.name, data, header.stream_id, meta.sha256)
 
+    @property
+    def corrected(self) -> np.ndarray | None:
+        """(cells, cells) bool: the cells whose bits the last pushed frame's Reed-Solomon code
+        corrected; None if it did not decode, and for ``paper`` (no code per frame)."""
+        return self._codec.corrected if self.profile.framed else None
+
     def progress(self) -> dict[int, dict]:
         """Per stream in flight: stream_id, symbols_held, symbols_needed, name, size (name and
         size are None until the metadata block decoded)."""

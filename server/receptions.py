@@ -4,7 +4,8 @@ A *reception* is one message a receiver decoded in full: its bytes, their sha256
 again here: bytes that do not match the digest the receiver claims are refused), whether they
 hash to the digest their sender sent in-band, and the uploaded message with the same digest, if
 any. Poses are kept at the rate the receiver publishes them (decimated for the UI), so a
-trajectory survives a server restart. Each receiver numbers its reports; the server remembers
+trajectory survives a server restart, each with whether a frame had proven the receiver's lock
+(verified) or not yet (tentative). Each receiver numbers its reports; the server remembers
 the highest number it has stored per receiver, so a report replayed from the receiver's spool
 after a reconnect is acknowledged again but stored once. Receivers are kept under their public id
 (``eventocc.occ.report.public_receiver_id``), never under the secret one they connect with.
@@ -50,6 +51,7 @@ CREATE TABLE IF NOT EXISTS receiver_poses (
     receiver TEXT NOT NULL REFERENCES receivers(id),
     t_us     INTEGER NOT NULL,
     tx REAL, ty REAL, tz REAL, qx REAL, qy REAL, qz REAL, qw REAL,
+    verified INTEGER,
     PRIMARY KEY (receiver, t_us)
 ) WITHOUT ROWID;
 """
@@ -136,6 +138,9 @@ class ReceptionStore:
             columns = {r["name"] for r in db.execute("PRAGMA table_info(receptions)")}
             if "verified" not in columns:  # a database from before the column
                 db.execute("ALTER TABLE receptions ADD COLUMN verified INTEGER")
+            columns = {r["name"] for r in db.execute("PRAGMA table_info(receiver_poses)")}
+            if "verified" not in columns:  # its poses' flag stays NULL: not known, not verified
+                db.execute("ALTER TABLE receiver_poses ADD COLUMN verified INTEGER")
             if db.execute("PRAGMA user_version").fetchone()[0] < 1:
                 _keep_public_ids(db)
             db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
@@ -243,25 +248,31 @@ class ReceptionStore:
             raise KeyError(f"reception {reception.id} has been deleted")
         return bytes(row["data"])
 
-    def add_poses(self, receiver: str, seq: int, rows: Iterable[PoseRow]) -> None:
-        """Append ``(t_us, tx, ty, tz, qx, qy, qz, qw)`` rows sent in report ``seq``."""
+    def add_poses(
+        self, receiver: str, seq: int, rows: Iterable[PoseRow], *, verified: bool
+    ) -> None:
+        """Append ``(t_us, tx, ty, tz, qx, qy, qz, qw)`` rows sent in report ``seq``, verified
+        (a frame had proven the lock) or tentative."""
         with self._transaction() as db:
             db.executemany(
-                "INSERT OR IGNORE INTO receiver_poses VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                ((receiver, *row) for row in rows),
+                "INSERT OR IGNORE INTO receiver_poses "
+                "(receiver, t_us, tx, ty, tz, qx, qy, qz, qw, verified) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                ((receiver, *row, verified) for row in rows),
             )
             _mark(db, receiver, seq)
 
-    def poses(self, receiver: str) -> list[PoseRow] | None:
-        """All kept poses of ``receiver`` in time order, as TUM rows with t in microseconds;
-        None for a receiver that never connected."""
+    def poses(self, receiver: str, *, tentative: bool = False) -> list[PoseRow] | None:
+        """The kept poses of ``receiver`` in time order, as TUM rows with t in microseconds:
+        the verified ones, or with ``tentative`` all; None for a receiver that never
+        connected."""
         with self._transaction() as db:
             if db.execute("SELECT 1 FROM receivers WHERE id = ?", (receiver,)).fetchone() is None:
                 return None
             rows = db.execute(
                 "SELECT t_us, tx, ty, tz, qx, qy, qz, qw FROM receiver_poses "
-                "WHERE receiver = ? ORDER BY t_us",
-                (receiver,),
+                "WHERE receiver = ? AND (? OR verified) ORDER BY t_us",
+                (receiver, tentative),
             ).fetchall()
         # Servers before ``/ws/receiver`` took strict JSON kept non-finite poses (a NaN reads
         # back as NULL): not poses.

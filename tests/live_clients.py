@@ -76,12 +76,13 @@ def message_report(data: bytes = TEXT, name: str = "note.txt") -> MessageReport:
     return MessageReport.of(ReceivedMessage(name, data, digest, 7, "robust", digest))
 
 
-def pose(t_us: int) -> PoseReport:
+def pose(t_us: int, verified: bool = True) -> PoseReport:
     return PoseReport(
         t_us=t_us,
         position=(0.1, 0.2, -0.5),
         quaternion_xyzw=(0.0, 0.0, 0.0, 1.0),
         state=TrackingState.TRACKING,
+        verified=verified,
     )
 
 

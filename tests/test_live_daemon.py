@@ -11,7 +11,15 @@ import numpy as np
 import pytest
 
 from eventocc.occ.profiles import LinkSettings
-from eventocc.occ.report import FrameStats, HealthReport, MessageReport, PoseReport, SurfaceReport
+from eventocc.occ.report import (
+    CellsReport,
+    FrameStats,
+    HealthReport,
+    MessageReport,
+    PoseReport,
+    SurfaceReport,
+    TrackingState,
+)
 from eventocc.occ.stream import ReceivedMessage
 from eventocc.receiver.events import make_events
 from eventocc.receiver.live.cameras import LiveCamera
@@ -51,7 +59,14 @@ class ScriptedPipeline:
     """Stands in for the receiver pipeline: one pose per 250 us of events, a frame per chunk,
     and a message on the chunk given."""
 
-    def __init__(self, message_on_chunk: int = 3, name: str = "a.txt") -> None:
+    cell_px = 2.5
+    detection_failure = "spatial: no inner-locator 'L' found (score 0.10)"
+
+    def __init__(
+        self, message_on_chunk: int = 3, name: str = "a.txt", proven_from_us: int = 0
+    ) -> None:
+        self.proven_from_us = proven_from_us
+        """Poses from this time on come out verified, the earlier ones tentative."""
         self.stream = ScriptedStream()
         self.chunks = 0
         self.message_on_chunk = message_on_chunk
@@ -62,12 +77,17 @@ class ScriptedPipeline:
         t0, t1 = int(chunk["t"][0]), int(chunk["t"][-1])
         out: list = [StateChange(t0, "tracking", "marker detected")] if self.chunks == 1 else []
         out += [
-            PoseEstimate(t, make_pose(np.eye(3), [t * 1e-6, 0.0, -1.0])) for t in range(t0, t1, 250)
+            PoseEstimate(t, make_pose(np.eye(3), [t * 1e-6, 0.0, -1.0]), t >= self.proven_from_us)
+            for t in range(t0, t1, 250)
         ]
-        bits = np.ones((4, 4), np.uint8)
+        bits = np.eye(4, dtype=np.uint8)
+        corrected = np.zeros((4, 4), bool)
+        corrected[0, 1] = True
         out.append(
             FrameOutput(
-                FrameRead(self.chunks, t1, bits, np.full((4, 4), 0.9), 0.8, len(chunk)), True
+                FrameRead(self.chunks, t1, bits, np.full((4, 4), 0.9), 0.8, len(chunk)),
+                True,
+                corrected=corrected,
             )
         )
         if self.chunks == self.message_on_chunk:
@@ -139,6 +159,43 @@ def test_poses_are_decimated_for_the_server_and_kept_in_full_in_the_file(tmp_pat
     assert sent[3].position == pytest.approx((0.03, 0.0, -1.0))
 
 
+def test_tentative_poses_are_flagged_and_kept_out_of_the_trajectory(tmp_path) -> None:
+    chunks = [chunk(i * 10_000, (i + 1) * 10_000 - 1) for i in range(10)]
+    daemon, sink = run_daemon(tmp_path, chunks, ScriptedPipeline(proven_from_us=50_000))
+    sent = sink.of(PoseReport)
+    assert [p.verified for p in sent] == [p.t_us >= 50_000 for p in sent]
+    assert {p.verified for p in sent} == {True, False}
+    t_all, _ = read_tum(tmp_path / "out" / "trajectory_all.tum")
+    t_verified, T = read_tum(tmp_path / "out" / "trajectory.tum")
+    assert len(t_all) == daemon.summary.poses == 400
+    assert list(t_verified) == [t for t in t_all if t >= 50_000] and len(t_verified) == 200
+    assert np.allclose(T[:, 0, 3], t_verified * 1e-6)
+
+
+def test_a_read_frames_cells_go_out_packed_a_few_times_a_second(tmp_path) -> None:
+    chunks = [chunk(i * 10_000, (i + 1) * 10_000 - 1) for i in range(10)]
+    daemon, sink = run_daemon(tmp_path, chunks, news_hz=1e-3)  # at most one in 1000 s
+    (cells,) = sink.of(CellsReport)
+    assert daemon.summary.frames == 10, "every frame read, one shown"
+    assert (cells.cells, cells.frame_index, cells.t_us) == (4, 1, 9_999)
+    unpack = lambda b64: np.unpackbits(np.frombuffer(base64.b64decode(b64), np.uint8))  # noqa: E731
+    assert np.array_equal(unpack(cells.bits_b64).reshape(4, 4), np.eye(4))
+    assert np.flatnonzero(unpack(cells.corrected_b64)).tolist() == [1]
+    assert not any(durable for r, durable in sink.reports if isinstance(r, CellsReport))
+
+
+def test_health_says_what_the_camera_sees_and_why_it_cannot_lock(tmp_path) -> None:
+    daemon = Daemon(ListSource([]), ScriptedPipeline(), ListSink(), OutputFolder(tmp_path))
+    daemon.state = TrackingState.SCANNING
+    daemon.publish_news(None)
+    daemon.state = TrackingState.TRACKING
+    daemon.publish_news(None)
+    scanning, tracking = daemon.sink.of(HealthReport)
+    assert scanning.px_per_cell == tracking.px_per_cell == 2.5
+    assert scanning.detection_failure == "spatial: no inner-locator 'L' found (score 0.10)"
+    assert tracking.detection_failure is None, "a failure before the lock is history"
+
+
 def test_finished_messages_are_saved_and_reported_durably(tmp_path) -> None:
     _, sink = run_daemon(tmp_path, [chunk(i * 1000, i * 1000 + 999) for i in range(4)])
     (report,) = sink.of(MessageReport)
@@ -192,7 +249,7 @@ def test_news_is_ephemeral_and_well_formed(tmp_path) -> None:
     daemon, sink = run_daemon(tmp_path, [chunk(0, 9_999)], news_hz=1000.0)
     news = [r for r, durable in sink.reports if not durable]
     kinds = {type(r).__name__ for r in news}
-    assert kinds == {"FrameStats", "ProgressReport", "HealthReport", "SurfaceReport"}
+    assert kinds == {"FrameStats", "ProgressReport", "HealthReport", "SurfaceReport", "CellsReport"}
     (surface,) = sink.of(SurfaceReport)
     pixels = np.frombuffer(base64.b64decode(surface.pixels_b64), np.uint8)
     assert pixels.size == 64 * 48 and pixels.max() == 255, "the newest event is at full white"

@@ -97,6 +97,7 @@ def pose(t_us: int) -> PoseReport:
         position=(0.0, 0.0, -1.0),
         quaternion_xyzw=(0, 0, 0, 1.0),
         state=TrackingState.TRACKING,
+        verified=True,
     )
 
 

@@ -257,7 +257,7 @@ def test_receivers_kept_under_their_secret_id_are_renamed_to_their_public_one(tm
     with sqlite3.connect(path) as db:
         db.execute("PRAGMA user_version = 0")
         db.execute("INSERT INTO receivers VALUES ('old-rx', 'then', 'then', 41)")
-        db.execute("INSERT INTO receiver_poses VALUES ('old-rx', 5, 0, 0, 0, 0, 0, 0, 1)")
+        db.execute("INSERT INTO receiver_poses VALUES ('old-rx', 5, 0, 0, 0, 0, 0, 0, 1, 1)")
     db.close()
     store = ReceptionStore(path)
     public = public_receiver_id("old-rx")

@@ -190,6 +190,7 @@ def test_dashboards_see_receivers_poses_and_receptions(serve_app) -> None:
     assert "rx-1" not in json.dumps(seen), "nor its secret id"
     assert seen[1]["receiver"] == RX_1 and seen[1]["position"] == [0.1, 0.2, -0.5]
     assert seen[2]["url"].startswith("/api/receptions/")
+    assert seen[2]["stream_id"] == 7, "so the dashboards end that stream's progress bar"
 
 
 def test_transmitter_socket_and_rest_status_are_one_state(serve_app) -> None:
@@ -384,3 +385,37 @@ def test_store_keeps_whether_the_sender_checked_the_bytes(tmp_path) -> None:
         "2": True,
         "3": False,
     }
+
+
+def test_the_trajectory_holds_verified_poses_unless_all_are_asked_for(serve_app) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+
+    async def scenario() -> None:
+        ws, _ = await open_receiver(base_url)
+        for seq, (t_us, verified) in enumerate([(1_000, False), (2_000, True), (3_000, True)], 1):
+            await ws.send(envelope(seq, pose(t_us, verified=verified)))
+            await ws.recv()  # stored, then acked
+        await ws.close()
+
+    asyncio.run(scenario())
+    times = lambda text: [line.split()[0] for line in text.decode().splitlines()[1:]]  # noqa: E731
+    trajectory = f"/api/receivers/{RX_1}/trajectory"
+    assert times(get(base_url, trajectory)) == ["0.002000", "0.003000"]
+    assert times(get(base_url, trajectory + "?all=true")) == ["0.001000", "0.002000", "0.003000"]
+    assert times(get(base_url, trajectory + "?all=false")) == ["0.002000", "0.003000"]
+
+
+def test_poses_kept_before_the_verified_flag_are_kept_as_tentative(tmp_path) -> None:
+    path = tmp_path / "db.sqlite"
+    with sqlite3.connect(path) as db:  # a database from before the column
+        db.executescript(SCHEMA.replace("    verified INTEGER,\n", ""))
+        db.execute("PRAGMA user_version = 1")  # receivers already under their public id
+        db.execute("INSERT INTO receivers VALUES ('rx', 'now', 'now', 1)")
+        db.execute("INSERT INTO receiver_poses VALUES ('rx', 5, 0, 0, 0, 0, 0, 0, 1)")
+    db.close()
+    store = ReceptionStore(path)
+    store.add_poses("rx", 2, [(6, 1, 0, 0, 0, 0, 0, 1)], verified=True)
+    store.add_poses("rx", 3, [(7, 2, 0, 0, 0, 0, 0, 1)], verified=False)
+    assert [row[0] for row in store.poses("rx")] == [6]
+    assert [row[0] for row in store.poses("rx", tentative=True)] == [5, 6, 7]
+    store.close()

@@ -190,6 +190,8 @@ def test_a_receiver_starts_on_its_fallback_when_the_status_is_unusable(stub, cap
 
 
 class CountingPipeline:
+    cell_px = detection_failure = None
+
     def __init__(self) -> None:
         self.chunks = 0
         self.stream = self

@@ -341,3 +341,21 @@ def test_fast_cells_do_not_toggle_in_lockstep_with_the_inner_locator() -> None:
     assert len(symbols) > 30
     always_one = np.all(symbols == 1, axis=0)
     assert not always_one.any()
+
+
+@pytest.mark.parametrize("profile", FRAMED)
+def test_decoder_marks_the_cells_its_code_corrected(profile: str) -> None:
+    enc = StreamEncoder(b"hello" * 40, profile=profile, cells=16)
+    dec = StreamDecoder(profile=profile, cells=16)
+    k = next(k for k in range(10) if enc.is_data_frame(k))
+    bits = enc.payload_bits(k)
+    flipped = np.zeros_like(bits, dtype=bool)
+    flipped[[0, 3, 9], [2, 7, 11]] = True
+    dec.push(bits ^ flipped)
+    assert dec.verified_bits, "the frame decoded"
+    assert np.array_equal(dec.corrected, flipped)
+    dec.push(bits)
+    assert not dec.corrected.any(), "a clean frame needs no correction"
+    dec.push(np.random.default_rng(2).integers(0, 2, (16, 16), dtype=np.uint8))
+    assert dec.corrected is None, "a frame that did not decode has no corrections"
+    assert StreamDecoder(profile="paper", cells=16, message_size=10).corrected is None

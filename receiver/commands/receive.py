@@ -115,7 +115,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--out",
         type=Path,
         default=Path("out/receiver"),
-        help="output folder: trajectory.tum, messages/, spool.db (default out/receiver)",
+        help="output folder: trajectory.tum (verified poses), trajectory_all.tum, messages/, "
+        "spool.db (default out/receiver)",
     )
     p.add_argument(
         "--pose-hz",

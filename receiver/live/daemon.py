@@ -2,13 +2,14 @@
 
 The pipeline sees every event; what leaves it is thinned for each audience:
 
-- the output folder keeps everything: the full-rate trajectory (``trajectory.tum``) and every
-  finished message (``messages/``), plus the publisher's spool (``spool.db``) and the latest
-  health (``health.json``);
+- the output folder keeps everything: the full-rate trajectory (``trajectory.tum``: the poses
+  of proven locks; ``trajectory_all.tum``: the tentative ones too), every finished message
+  (``messages/``), the publisher's spool (``spool.db``) and the latest health
+  (``health.json``);
 - the server gets poses at most ``pose_hz`` (for the UI; durable, so a server restart loses no
   segment), every finished message (durable), each frame's statistics, and a few times a
-  second progress, health and a time-surface thumbnail (ephemeral news: while the server is
-  away, only the newest of each kind waits).
+  second progress, health, a time-surface thumbnail and the cells of a read frame (ephemeral
+  news: while the server is away, only the newest of each kind waits).
 
 A source that knows what the screen sends (the virtual camera) makes the daemon follow the
 transmitter: when its link settings change, a ``LinkFollower`` rebuilds the pipeline for them,
@@ -35,6 +36,7 @@ from pydantic import BaseModel
 
 from eventocc.occ.profiles import LinkSettings
 from eventocc.occ.report import (
+    CellsReport,
     FrameStats,
     HealthReport,
     MessageReport,
@@ -70,6 +72,10 @@ class Pipeline(Protocol):
     stand-in): ``push`` events, and the stream decoder's progress per message in flight."""
 
     stream: Progress
+    cell_px: float | None
+    """A cell's side in pixels as the camera sees it (``Receiver.cell_px``)."""
+    detection_failure: str | None
+    """Why the latest detection failed; None once locked."""
 
     def push(self, chunk: np.ndarray) -> list[Output]: ...
 
@@ -85,7 +91,7 @@ class DaemonConfig:
     pose_hz: float = 100.0
     """Poses sent to the server per second, at most (the file keeps all of them)."""
     news_hz: float = 4.0
-    """Progress, health and thumbnail updates per second."""
+    """Progress, health, thumbnail and read-cells updates per second."""
     thumbnail_px: tuple[int, int] = (64, 48)
     thumbnail_tau_us: int = 30_000
     """Time-surface decay: events older than a few tau fade to black."""
@@ -171,15 +177,18 @@ class DaemonSummary:
 
 
 class OutputFolder:
-    """The daemon's files: the full-rate trajectory and the finished messages."""
+    """The daemon's files: the full-rate trajectory, of the proven locks' poses
+    (``trajectory.tum``) and of all (``trajectory_all.tum``), and the finished messages."""
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
         self.messages = self.root / "messages"
         self.messages.mkdir(parents=True, exist_ok=True)
         self.trajectory = self.root / "trajectory.tum"
-        if not self.trajectory.exists():
-            self.trajectory.write_text(TUM_HEADER)
+        self.trajectory_all = self.root / "trajectory_all.tum"
+        for path in (self.trajectory, self.trajectory_all):
+            if not path.exists():
+                path.write_text(TUM_HEADER)
         self._poses: list[PoseEstimate] = []
 
     def append_poses(self, poses: list[PoseEstimate]) -> None:
@@ -191,11 +200,11 @@ class OutputFolder:
         # a tenth of a core.
         if not self._poses:
             return
-        lines = tum_lines(
-            [p.t_us for p in self._poses], np.stack([p.T_world_cam for p in self._poses])
-        )
-        with self.trajectory.open("a") as f:
-            f.write(lines)
+        with self.trajectory_all.open("a") as f:
+            f.write(_tum_lines(self._poses))
+        if verified := [p for p in self._poses if p.verified]:
+            with self.trajectory.open("a") as f:
+                f.write(_tum_lines(verified))
         self._poses.clear()
 
     def write_health(self, report: HealthReport) -> None:
@@ -208,6 +217,10 @@ class OutputFolder:
         path = self.messages / message_file_name(name, sha256, _name_max(self.messages))
         path.write_bytes(data)
         return path
+
+
+def _tum_lines(poses: list[PoseEstimate]) -> str:
+    return tum_lines([p.t_us for p in poses], np.stack([p.T_world_cam for p in poses]))
 
 
 NAME_MAX = 255
@@ -261,6 +274,7 @@ class Daemon:
         self._sending: LinkSettings | None = None
         self._last_pose_sent_us = -(1 << 62)
         self._next_news = 0.0
+        self._next_cells = 0.0
         self._rate = RateMeter()
 
     def run(self, stop: threading.Event | None = None) -> DaemonSummary:
@@ -316,6 +330,7 @@ class Daemon:
             elif isinstance(out, FrameOutput):
                 self.summary.frames += 1
                 self.sink.publish(self.frame_stats(out), durable=False)
+                self.publish_cells(out)
             elif isinstance(out, MessageOutput):
                 self.publish_message(out)
             elif isinstance(out, StateChange):
@@ -338,6 +353,7 @@ class Daemon:
             position=tuple(row[:3]),
             quaternion_xyzw=tuple(row[3:]),
             state=TrackingState.TRACKING,
+            verified=pose.verified,
         )
         self.sink.publish(report, durable=True)
 
@@ -370,6 +386,14 @@ class Daemon:
             payload_bits=out.payload_bits,
         )
 
+    def publish_cells(self, out: FrameOutput) -> None:
+        """The cells of a read frame, ``news_hz`` times a second at most (the dashboard's view
+        of what the camera reads, not a record)."""
+        if time.monotonic() < self._next_cells:
+            return
+        self._next_cells = time.monotonic() + 1.0 / self.config.news_hz
+        self.sink.publish(cells_report(out), durable=False)
+
     def publish_news(self, chunk: np.ndarray | None) -> None:
         """The periodic ephemeral updates: progress, health, thumbnail."""
         for stream in self.pipeline.stream.progress().values():
@@ -381,6 +405,10 @@ class Daemon:
             state=self.state,
             source_speed=getattr(self.source, "speed", None),
             camera=camera_report() if camera_report is not None else None,
+            px_per_cell=self.pipeline.cell_px,
+            detection_failure=(
+                None if self.state is TrackingState.TRACKING else self.pipeline.detection_failure
+            ),
         )
         self.sink.publish(health, durable=False)
         self.output.write_health(health)
@@ -404,6 +432,21 @@ class Daemon:
             height=height,
             pixels_b64=base64.b64encode(pixels.tobytes()).decode(),
         )
+
+
+def _packed_b64(bits: np.ndarray) -> str:
+    return base64.b64encode(np.packbits(np.asarray(bits, bool).reshape(-1)).tobytes()).decode()
+
+
+def cells_report(out: FrameOutput) -> CellsReport:
+    read = out.read
+    return CellsReport(
+        t_us=read.t_us,
+        frame_index=max(read.index, 0),
+        cells=read.bits.shape[0],
+        bits_b64=_packed_b64(read.bits),
+        corrected_b64=None if out.corrected is None else _packed_b64(out.corrected),
+    )
 
 
 @numba.njit(cache=True, nogil=True)

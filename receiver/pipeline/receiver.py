@@ -79,6 +79,9 @@ class FrameOutput:
     """The inner locator was seen, so the bits went to the stream decoder."""
     payload_bits: int = 0
     """Payload bits the stream decoder verified in this frame (``StreamDecoder.verified_bits``)."""
+    corrected: np.ndarray | None = None
+    """(cells, cells) bool: the cells whose bits the frame's Reed-Solomon code corrected; None
+    if it did not decode or was not decoded (``StreamDecoder.corrected``)."""
 
 
 @dataclass(frozen=True)
@@ -192,6 +195,12 @@ class Receiver:
         """The tracked poses (T_cam_world) that the decoder reads frames through."""
         self._smoother = PoseSmoother(config.pose_smoothing_us)
         self._last_pose_out = -(1 << 62)
+        self.cell_px: float | None = None
+        """A cell's side in pixels as the camera sees it: at the latest frame's or lock's pose,
+        or while detecting as the latest blinking region suggests (``MarkerNotFound.cell_px``);
+        None until one was seen."""
+        self.detection_failure: str | None = None
+        """Why the latest detection attempt failed; None once locked."""
 
     # --- public ------------------------------------------------------------------------------
     def push(self, chunk: np.ndarray) -> list[Output]:
@@ -262,6 +271,8 @@ class Receiver:
                         found = nearest_turn(found, prior, self.config)
             return self._lock(found, now)
         except MarkerNotFound as exc:
+            if exc.cell_px is not None:
+                self.cell_px = exc.cell_px
             self._detection_failed(now, str(exc), time.process_time() - cpu0)
             return []
 
@@ -278,6 +289,7 @@ class Receiver:
         that failing ones take at most ``max_cpu_share`` of a core."""
         q = self.config.detector
         self.stats.detection_failures[reason] += 1
+        self.detection_failure = reason
         log.debug("detection at %d us: %s", now, reason)
         wait_us = q.retry_us
         if q.max_cpu_share is not None:
@@ -297,7 +309,7 @@ class Receiver:
                 recent = to_columns(recent, self.config.camera.undistort_table)
                 if tracker.capture(recent["xu"], recent["yu"], now):
                     T = tracker.T_cam_world
-        side = cell_side_px(self.config, T)
+        side = self.cell_px = cell_side_px(self.config, T)
         stride = read_stride(self.config, side)
         late, q = self.config.decoder.late_mark_px_per_cell, self.config.decoder
         framed = get_profile(self.config.profile).framed
@@ -339,6 +351,7 @@ class Receiver:
             self._end_track()  # its poses never stood
             raise MarkerNotFound(reason)
         self.stats.lock_times_us.append(now)
+        self.detection_failure = None
         return out
 
     def _probation_frames(self, moving: bool) -> int | None:
@@ -508,9 +521,13 @@ class Receiver:
             verified = self.stream.verified_bits
             with self._cpu("stream"):
                 messages = self.stream.push(read.bits, read.confidence)
-            frame = FrameOutput(read, True, self.stream.verified_bits - verified)
+            frame = FrameOutput(
+                read, True, self.stream.verified_bits - verified, self.stream.corrected
+            )
+            pose = self.pose_at(np.array([read.t_us]))[0]
+            self.cell_px = cell_side_px(self.config, pose)
             if frame.payload_bits:
-                self._verified = (read.t_us, self.pose_at(np.array([read.t_us]))[0])
+                self._verified = (read.t_us, pose)
             if frame.payload_bits or (not framed and track.turn_leads[-1] >= q.min_turn_lead):
                 track.proven = True
             out.append(frame)

@@ -16,9 +16,9 @@ import logging
 import math
 import secrets
 import time
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, status
+from fastapi import APIRouter, HTTPException, Query, status
 from fastapi.responses import PlainTextResponse
 from fastapi.websockets import WebSocket, WebSocketDisconnect
 from pydantic import TypeAdapter, ValidationError
@@ -171,7 +171,9 @@ async def handle_report(live: LiveState, receiver: str, seq: int | None, report:
         return
     if isinstance(report, PoseReport) and seq is not None:
         row = (report.t_us, *report.position, *report.quaternion_xyzw)
-        await asyncio.to_thread(live.receptions.add_poses, receiver, seq, [row])
+        await asyncio.to_thread(
+            live.receptions.add_poses, receiver, seq, [row], verified=report.verified
+        )
     elif seq is not None:
         await asyncio.to_thread(live.receptions.mark_stored, receiver, seq)
     if isinstance(report, FrameStats) and report.bits_read:
@@ -212,7 +214,9 @@ async def store_reception(
         ("verified against the sender's sha256" if report.verified else "unchecked")
         + ("" if uploaded else "; no upload has these bytes"),
     )
-    return {"type": "reception", **ReceptionPublic.of(reception).model_dump(mode="json")}
+    # The stream id lets the dashboards drop that stream's progress bar (its name may be unknown).
+    public = ReceptionPublic.of(reception).model_dump(mode="json")
+    return {"type": "reception", "stream_id": report.stream_id, **public}
 
 
 def upload_with_digest(messages: MessageStore, sha256: str) -> str | None:
@@ -225,9 +229,21 @@ def upload_with_digest(messages: MessageStore, sha256: str) -> str | None:
     response_class=PlainTextResponse,
     responses={404: {"description": "No receiver with this public id ever connected."}},
 )
-def read_trajectory(receiver: str, live: LiveDep) -> str:
-    """The receiver's kept poses as a TUM file (``t tx ty tz qx qy qz qw``, t in seconds)."""
-    poses = live.receptions.poses(receiver)
+def read_trajectory(
+    receiver: str,
+    live: LiveDep,
+    tentative: Annotated[
+        bool,
+        Query(
+            alias="all",
+            description="Also the tentative poses: those before a frame proved the "
+            "receiver's lock (a wrong lock can look right to every other check).",
+        ),
+    ] = False,
+) -> str:
+    """The receiver's kept poses as a TUM file (``t tx ty tz qx qy qz qw``, t in seconds): the
+    verified ones, or with ``?all=true`` the tentative ones too."""
+    poses = live.receptions.poses(receiver, tentative=tentative)
     if poses is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no receiver {receiver!r} ever connected")
     lines = [
