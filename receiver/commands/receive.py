@@ -7,9 +7,11 @@ is away, reports that matter (poses, messages) wait in the output folder's spool
 when it is back. Ctrl-C stops it.
 
 Sources: ``sim:`` (default) the virtual event camera watching what the server's transmitter
-plays; ``file:PATH`` or ``PATH`` a recording; ``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live
-camera through an optional backend; ``nd-replay:PATH`` a recording replayed as a USB camera
-through the neuromorphic-drivers path (its pace, USB ring and backlog).
+plays (``sim:MESSAGE_ID``: that message until a transmitter page reports, else the newest
+upload; a paused or closed page shows it nothing); ``file:PATH`` or ``PATH`` a recording;
+``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live camera through an optional backend;
+``nd-replay:PATH`` a recording replayed as a USB camera through the neuromorphic-drivers path
+(its pace, USB ring and backlog).
 
 A live camera's own event-rate limiter (on by default, see ``--max-event-rate``) and biases are
 set from ``--camera-config FILE`` and the options below; its temperature and light reading,
@@ -61,8 +63,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--source",
         default="sim:",
-        help="sim: | file:PATH | PATH | nd: | metavision:[SERIAL] | dv: | nd-replay:PATH  "
-        "(default: sim:)",
+        help="sim:[MESSAGE_ID] | file:PATH | PATH | nd: | metavision:[SERIAL] | dv: | "
+        "nd-replay:PATH (default: sim:)",
     )
     p.add_argument(
         "--pace",
