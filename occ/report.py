@@ -175,6 +175,9 @@ class HealthReport(_Model):
     below 1 it skips ahead to stay live."""
     camera: CameraReport | None = None
     """A live camera's own readings and link losses (absent for other sources)."""
+    waiting: Annotated[str, Field(max_length=300)] | None = None
+    """Why the source gives no events now (the virtual camera: the transmitter page is paused
+    or closed); ``state`` is then idle."""
 
 
 class SurfaceReport(_Model):

@@ -11,7 +11,14 @@ import numpy as np
 import pytest
 
 from eventocc.occ.profiles import LinkSettings
-from eventocc.occ.report import FrameStats, HealthReport, MessageReport, PoseReport, SurfaceReport
+from eventocc.occ.report import (
+    FrameStats,
+    HealthReport,
+    MessageReport,
+    PoseReport,
+    SurfaceReport,
+    TrackingState,
+)
 from eventocc.occ.stream import ReceivedMessage
 from eventocc.receiver.events import make_events
 from eventocc.receiver.live.cameras import LiveCamera
@@ -389,3 +396,34 @@ def test_live_clock_says_how_late_and_what_is_due_now() -> None:
     now[0] += 0.5
     assert clock.wait(1_300_000) == pytest.approx(0.45), "late: it says by how much"
     assert clock.now_us() == 1_750_000
+
+
+class PausingSource(ListSource):
+    """A virtual camera whose screen is paused between two stretches of events: it yields empty
+    heartbeats and says why (``waiting``) meanwhile."""
+
+    def __init__(self) -> None:
+        super().__init__([])
+        self.waiting: str | None = None
+
+    def chunks(self):
+        yield chunk(0, 9_999)
+        self.waiting = "the transmitter page is paused"
+        yield chunk(0, 0, n=0)
+        self.waiting = None
+        yield chunk(10_000, 19_999)
+
+
+def test_a_source_with_nothing_to_show_makes_the_daemon_idle_and_say_why(tmp_path) -> None:
+    source, sink = PausingSource(), ListSink()
+    daemon = Daemon(
+        source, ScriptedPipeline(), sink, OutputFolder(tmp_path / "out"), DaemonConfig(news_hz=1e6)
+    )
+    states = []
+    for events in source.chunks():
+        daemon.process(events)
+        states.append(daemon.state)
+    assert states == [TrackingState.TRACKING, TrackingState.IDLE, TrackingState.SCANNING]
+    waits = [(h.state, h.waiting) for h in sink.of(HealthReport)]
+    assert (TrackingState.IDLE, "the transmitter page is paused") in waits
+    assert waits[-1] == (TrackingState.SCANNING, None), "not a frozen 'tracking'"

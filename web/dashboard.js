@@ -214,9 +214,9 @@ function drawMessages() {
 function drawState() {
   const h = state.health;
   if (h) {
-    $("tracking-state").textContent = h.state;
     $("cpu-load").textContent = `${(100 * h.cpu_load).toFixed(0)} % of a core`;
     showSourceSpeed(h.source_speed);
+    showWaiting(h);
     showCamera(h.camera);
   }
   const f = state.lastFrame;
@@ -224,6 +224,14 @@ function drawState() {
     $("frame-stats").textContent =
       `#${f.frame_index}, ${f.bits_read} bits, confidence ${f.confidence_mean.toFixed(2)}`;
   }
+}
+
+function showWaiting(h) {
+  // A source with nothing to show (the transmitter page paused or closed) says why: the
+  // receiver is idle, not tracking with its last pose frozen.
+  $("tracking-state").textContent = h.waiting ? `idle: ${h.waiting}` : h.state;
+  $("tracking-state").dataset.state = h.waiting ? "waiting" : h.state;
+  if (h.waiting) $("source-speed").textContent = "no events: waiting for the screen";
 }
 
 function showSourceSpeed(speed) {

@@ -287,12 +287,22 @@ class Daemon:
         self.summary.chunks += 1
         self.summary.events += len(chunk)
         self._rate.add(chunk)
+        self.follow_source_waiting()
         self.follow_transmitter()
         self.handle(self.pipeline.push(chunk))
         if time.monotonic() >= self._next_news:
             self._next_news = time.monotonic() + 1.0 / self.config.news_hz
             self.output.flush_poses()
             self.publish_news(chunk)
+
+    def follow_source_waiting(self) -> None:
+        """Idle while the source says it has nothing to show (a paused or closed transmitter
+        page), not the last tracking state frozen; scanning again once it shows something."""
+        waiting = getattr(self.source, "waiting", None)
+        if waiting is not None:
+            self.state = TrackingState.IDLE
+        elif self.state is TrackingState.IDLE:
+            self.state = TrackingState.SCANNING
 
     def follow_transmitter(self) -> None:
         """Rebuild the pipeline when the screen's link settings changed."""
@@ -381,6 +391,7 @@ class Daemon:
             state=self.state,
             source_speed=getattr(self.source, "speed", None),
             camera=camera_report() if camera_report is not None else None,
+            waiting=getattr(self.source, "waiting", None),
         )
         self.sink.publish(health, durable=False)
         self.output.write_health(health)
