@@ -99,3 +99,15 @@ def test_transmitter_draws_each_frame_pixel_exact_in_order(
     assert status["message_id"] == message["id"]
     assert status["cell_px"] == CELL_PX
     assert status["frame_index"] >= CAPTURED
+
+
+def test_an_id_the_server_does_not_hold_plays_nothing_and_says_so(base_url: str, browser) -> None:
+    post_message(base_url, "name=other.txt&profile=robust&cells=16")
+    page = browser.new_page()
+    page.goto(f"{base_url}/transmitter?id=0123456789ab")
+    page.wait_for_selector("#error:not([hidden])")
+    assert "no message 0123456789ab on this server" in page.text_content("#error")
+    page.click("#acknowledge")
+    assert page.is_disabled("#play"), "nothing to play"
+    assert page.evaluate("window.eventocc.playing") is False
+    page.close()
