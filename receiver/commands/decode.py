@@ -8,6 +8,7 @@ import logging
 from pathlib import Path
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
+from eventocc.receiver.commands import add_command, read_with_progress
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.receiver import Receiver
 from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
@@ -27,9 +28,7 @@ DEFAULTS = {
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "decode", help="decode the marker in an event recording", description=__doc__
-    )
+    p = add_command(sub, "decode", help="decode the marker in an event recording", doc=__doc__)
     p.add_argument("recording", type=Path, help="event file (RAW, DAT, AEDAT4, bag, npz, h5, ...)")
     p.add_argument(
         "--calibration", type=Path, help="camera calibration file (default: the camera of --scene)"
@@ -96,8 +95,6 @@ def _camera(args: argparse.Namespace, scene):
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from eventocc.receiver.io import read_events
 
     scene = None
@@ -126,17 +123,13 @@ def run(args: argparse.Namespace) -> int:
     if scene is not None:
         truth = FrameTruth(scene.encoder, scene.display.refresh_hz, scene.start_refresh)
     decoded = DecodeLog(receiver, truth)
-    with tqdm(total=stream.size or None, unit="B", unit_scale=True, desc="decode") as bar:
-        for chunk in stream:
-            if len(chunk) and (
-                chunk["x"].max() >= camera.width or chunk["y"].max() >= camera.height
-            ):
-                raise ValueError(
-                    f"events beyond the calibrated {camera.width}x{camera.height} "
-                    "sensor; pass the matching --calibration"
-                )
-            decoded.add(receiver.push(chunk))
-            bar.update(stream.position - bar.n)
+    for chunk in read_with_progress(stream, desc="decode", quiet=args.quiet):
+        if len(chunk) and (chunk["x"].max() >= camera.width or chunk["y"].max() >= camera.height):
+            raise ValueError(
+                f"events beyond the calibrated {camera.width}x{camera.height} "
+                "sensor; pass the matching --calibration"
+            )
+        decoded.add(receiver.push(chunk))
     decoded.add(receiver.finish())
     report = decoded.write(args.out)
     _summarise(report)

@@ -34,6 +34,7 @@ from pathlib import Path
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES, LinkSettings
 from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.commands import add_command
 from eventocc.receiver.live.controls import add_camera_arguments, camera_settings
 from eventocc.receiver.live.daemon import (
     Daemon,
@@ -54,11 +55,8 @@ DEFAULT_LINK = LinkSettings(DEFAULT_PROFILE, 16)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "receive",
-        help="run the live receiver daemon (events -> server)",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = add_command(
+        sub, "receive", help="run the live receiver daemon (events -> server)", doc=__doc__
     )
     p.add_argument(
         "--source",
@@ -111,7 +109,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--token",
         default=os.environ.get("EVENTOCC_TOKEN"),
-        help="the server's token (env EVENTOCC_TOKEN), if it has one",
+        help="the server's token, if it has one (default: env EVENTOCC_TOKEN)",
     )
     p.add_argument(
         "--out",
