@@ -21,6 +21,8 @@ PROTOCOL_VERSION = 1
 INT64_MAX = 2**63 - 1
 """Integers are 64-bit signed, as the server stores them (SQLite) and event times are."""
 
+MAX_WAITING = 300
+"""Characters of a health report's ``waiting``: a reason, not a log."""
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]
 Count = Annotated[int, Field(ge=0, le=INT64_MAX)]
 Micros = Annotated[int, Field(ge=-INT64_MAX - 1, le=INT64_MAX)]
@@ -175,7 +177,7 @@ class HealthReport(_Model):
     below 1 it skips ahead to stay live."""
     camera: CameraReport | None = None
     """A live camera's own readings and link losses (absent for other sources)."""
-    waiting: Annotated[str, Field(max_length=300)] | None = None
+    waiting: Annotated[str, Field(max_length=MAX_WAITING)] | None = None
     """Why the source gives no events now (the virtual camera: the transmitter page is paused
     or closed); ``state`` is then idle."""
 

@@ -65,6 +65,8 @@ class ScriptedPipeline:
         self.name = name
 
     def push(self, chunk: np.ndarray) -> list:
+        if not len(chunk):  # as the receiver: a heartbeat of no events changes nothing
+            return []
         self.chunks += 1
         t0, t1 = int(chunk["t"][0]), int(chunk["t"][-1])
         out: list = [StateChange(t0, "tracking", "marker detected")] if self.chunks == 1 else []
@@ -427,3 +429,12 @@ def test_a_source_with_nothing_to_show_makes_the_daemon_idle_and_say_why(tmp_pat
     waits = [(h.state, h.waiting) for h in sink.of(HealthReport)]
     assert (TrackingState.IDLE, "the transmitter page is paused") in waits
     assert waits[-1] == (TrackingState.SCANNING, None), "not a frozen 'tracking'"
+
+
+def test_a_long_reason_to_wait_is_cut_to_fit_the_report(tmp_path) -> None:
+    source, sink = PausingSource(), ListSink()
+    daemon = Daemon(source, ScriptedPipeline(), sink, OutputFolder(tmp_path / "out"))
+    source.waiting = "the server says: " + "x" * 1000
+    daemon.publish_news(None)
+    (health,) = sink.of(HealthReport)
+    assert health.waiting.startswith("the server says: xxx") and len(health.waiting) <= 300

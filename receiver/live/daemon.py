@@ -35,6 +35,7 @@ from pydantic import BaseModel
 
 from eventocc.occ.profiles import LinkSettings
 from eventocc.occ.report import (
+    MAX_WAITING,
     FrameStats,
     HealthReport,
     MessageReport,
@@ -298,11 +299,18 @@ class Daemon:
     def follow_source_waiting(self) -> None:
         """Idle while the source says it has nothing to show (a paused or closed transmitter
         page), not the last tracking state frozen; scanning again once it shows something."""
-        waiting = getattr(self.source, "waiting", None)
-        if waiting is not None:
+        if self.source_waiting() is not None:
             self.state = TrackingState.IDLE
         elif self.state is TrackingState.IDLE:
             self.state = TrackingState.SCANNING
+
+    def source_waiting(self) -> str | None:
+        """Why the source gives no events now, cut to what a report holds (a reason may quote
+        a long server answer)."""
+        waiting = getattr(self.source, "waiting", None)
+        if waiting is None or len(waiting) <= MAX_WAITING:
+            return waiting
+        return waiting[: MAX_WAITING - 1] + "…"
 
     def follow_transmitter(self) -> None:
         """Rebuild the pipeline when the screen's link settings changed."""
@@ -391,7 +399,7 @@ class Daemon:
             state=self.state,
             source_speed=getattr(self.source, "speed", None),
             camera=camera_report() if camera_report is not None else None,
-            waiting=getattr(self.source, "waiting", None),
+            waiting=self.source_waiting(),
         )
         self.sink.publish(health, durable=False)
         self.output.write_health(health)
