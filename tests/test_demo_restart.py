@@ -1,6 +1,7 @@
 """``make demo`` run again on a data folder holding other uploads: its virtual camera still
-shows the sample, which the dashboard sees verified; and a transmitter page that pauses or
-closes leaves the receiver idle, saying why, not "tracking" with a frozen pose."""
+shows the sample, which the dashboard sees verified; and a transmitter page that pauses (or is
+closed: it reports itself paused as it goes) leaves the receiver idle, saying why, not
+"tracking" with a frozen pose; it receives again once the page plays."""
 
 from __future__ import annotations
 
@@ -91,10 +92,6 @@ def test_a_restarted_demo_shows_the_sample_and_a_paused_page_leaves_it_idle(tmp_
                 post_status(port, {**page, "playing": True, "frame_index": 0})
                 live = wait_for(ws, lambda u: u["type"] == "health" and u["waiting"] is None, 30)
                 assert live is not None and live["state"] != "idle"
-                # The page stops reporting: closed, it shows the camera nothing.
-                closed = wait_for(ws, lambda u: u["type"] == "health" and u["waiting"], 30)
-                assert closed is not None and closed["state"] == "idle"
-                assert closed["waiting"].startswith("no transmitter page plays")
         finally:
             log = stop(running)
     assert "virtual camera waiting: the transmitter page is paused" in log

@@ -161,8 +161,8 @@ def test_a_good_status_still_gives_what_the_page_shows(stub) -> None:
         ({"playing": False}, "the transmitter page is paused"),
         ({"message_id": None}, "the transmitter page has no message to play"),
         (
-            {"received": (datetime.now(UTC) - timedelta(seconds=60)).isoformat()},
-            "no transmitter page plays (none reported for 5 s)",
+            {"received": (datetime.now(UTC) - timedelta(seconds=120)).isoformat()},
+            "no transmitter page plays (none reported for 90 s)",
         ),
     ],
 )

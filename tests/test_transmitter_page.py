@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+import time
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -111,3 +112,23 @@ def test_an_id_the_server_does_not_hold_plays_nothing_and_says_so(base_url: str,
     assert page.is_disabled("#play"), "nothing to play"
     assert page.evaluate("window.eventocc.playing") is False
     page.close()
+
+
+def test_a_closed_page_says_at_once_that_it_no_longer_plays(base_url: str, browser) -> None:
+    """A camera watching the screen must not take a closed page for one still playing."""
+    message = post_message(base_url, "name=closing.txt&profile=robust&cells=16")
+    page = browser.new_page()
+    page.goto(f"{base_url}/transmitter?id={message['id']}")
+    page.click("#acknowledge")
+    page.wait_for_function("!document.querySelector('#play').disabled")
+    page.click("#play")
+    page.wait_for_function("window.eventocc.frameIndex > 10")
+    page.close()
+    deadline = time.monotonic() + 0.8  # under the page's one-second report interval
+    while time.monotonic() < deadline:
+        with urllib.request.urlopen(f"{base_url}/api/transmitter/status") as response:
+            status = json.load(response)
+        if not status["playing"]:
+            break
+        time.sleep(0.05)
+    assert status["message_id"] == message["id"] and not status["playing"]

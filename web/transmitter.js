@@ -252,6 +252,7 @@ function setPlaying(playing) {
   if (playing) document.activeElement?.blur(); // let the control panel fade out
   document.body.classList.toggle("playing", playing);
   $("play").textContent = playing ? "Pause" : "Start";
+  reportStatus(); // at once: a camera watching this screen must not wait for the next report
   updateOverlay();
 }
 
@@ -304,6 +305,7 @@ async function reportStatus() {
   try {
     await api("/api/transmitter/status", {
       method: "POST",
+      keepalive: true, // sent even as the page closes (closing hides it, which pauses it)
       headers: { "Content-Type": "application/json" },
       body: JSON.stringify(report),
     });

@@ -27,8 +27,10 @@ MAX_FRAME_INDEX = 1 << 53
 """A page counts its frames in a JavaScript number, exact up to 2**53: no page shows more."""
 MessageId = Annotated[str, Field(pattern=r"^[0-9A-Za-z_-]{1,64}$")]
 """A message id goes into URL paths, so it must be one plain path segment."""
-PAGE_GONE_S = 5.0
-"""A page reports its status every second while open: one silent this long was closed."""
+PAGE_GONE_S = 90.0
+"""A page reports its status every second while open, and at once when it pauses or is hidden
+(closing it hides it); a browser may slow a hidden tab's reports to one a minute: a page
+silent this long was closed."""
 
 
 class StatusError(ValueError):
