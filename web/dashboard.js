@@ -200,11 +200,14 @@ function drawMessages() {
       link.textContent = r.name || r.id;
       link.download = r.name || r.id;
       const facts = document.createElement("span");
-      const speed = r.goodput_bps ? `, ${formatRate(r.goodput_bps, "bit/s")}` : "";
+      // The message's own rate, not the link's goodput (every verified frame's payload, repair
+      // symbols included): its bits over the time from its first symbol to its last.
+      const speed = r.goodput_bps ? `, message at ${formatRate(r.goodput_bps, "bit/s")}` : "";
       // Matching an upload or the sender's in-band sha256 checks the bytes; paper sends none.
       const check = r.message_id ? "sha256 matches upload" : r.verified ? "sha256 matches sender's" : "unchecked";
       facts.className = r.message_id || r.verified ? "verified" : "muted";
       facts.textContent = `${r.size} B, ${check}${speed}`;
+      facts.title = "the message's bits over the time from its first symbol to its last";
       li.append(link, facts);
       return li;
     }),
