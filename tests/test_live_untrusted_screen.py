@@ -70,13 +70,10 @@ class StubServer:
     def status(self, status: dict | str) -> None:
         """Say the transmitter shows ``status``; one received at ``NOW`` is stamped at each
         request, as from a page reporting all along (the module's ``NOW`` ages)."""
-        if isinstance(status, dict) and status.get("received") == NOW:
-            self.routes["/api/transmitter/status"] = lambda: json.dumps(
-                {**status, "received": datetime.now(UTC).isoformat()}
-            ).encode()
-            return
         body = status if isinstance(status, str) else json.dumps(status)
-        self.routes["/api/transmitter/status"] = body.encode()
+        self.routes["/api/transmitter/status"] = lambda: body.replace(
+            NOW, datetime.now(UTC).isoformat()
+        ).encode()
 
 
 @pytest.fixture
