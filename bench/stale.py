@@ -27,6 +27,7 @@ MEASURES: dict[str, tuple[str, ...]] = {
     "calibration": ("bench/calibration.py", "bench/experiments/streaming.py", "receiver/sim"),
     "tracking": ("bench/tracking.py", *_PIPELINE),
     "live": ("bench/live.py", *_PIPELINE, "receiver/live", "server"),
+    "first_run": ("bench/first_run.py", "Makefile", "pyproject.toml", "occ", "receiver", "server"),
     "paper_streaming": _EXPERIMENTS,
     "paper_localization": _EXPERIMENTS,
     "paper_comparison": _EXPERIMENTS,

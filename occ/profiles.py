@@ -46,6 +46,13 @@ class LinkProfile:
     """``fast``: every ``key_every``-th refresh resets the differential state to a fixed key
     pattern (it carries no symbol), so frame k costs at most ``key_every`` symbol encodings."""
 
+    @property
+    def data_share(self) -> float:
+        """Share of display refreshes that carry a data frame (blank and key refreshes carry
+        none): the same for every message, however its last key group falls."""
+        share = 1 / self.data_every
+        return share * (1 - 1 / self.key_every) if self.key_every else share
+
 
 PROFILES = {
     "paper": LinkProfile("paper", data_every=2, framed=False, parity_fraction=0.0),

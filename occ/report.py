@@ -21,6 +21,8 @@ PROTOCOL_VERSION = 1
 INT64_MAX = 2**63 - 1
 """Integers are 64-bit signed, as the server stores them (SQLite) and event times are."""
 
+MAX_WAITING = 300
+"""Characters of a health report's ``waiting``: a reason, not a log."""
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]
 Count = Annotated[int, Field(ge=0, le=INT64_MAX)]
 Micros = Annotated[int, Field(ge=-INT64_MAX - 1, le=INT64_MAX)]
@@ -184,6 +186,9 @@ class HealthReport(_Model):
     estimated from the latest blinking region detection found (None: nothing seen yet)."""
     detection_failure: str | None = Field(default=None, max_length=500)
     """Why the latest detection attempt failed, while not locked."""
+    waiting: Annotated[str, Field(max_length=MAX_WAITING)] | None = None
+    """Why the source gives no events now (the virtual camera: the transmitter page is paused
+    or closed); ``state`` is then idle."""
 
 
 class SurfaceReport(_Model):

@@ -84,6 +84,13 @@ def _add_pages(app: FastAPI, web_dir: Path) -> None:
         '<li><a href="/docs">API</a></li></ul></main></body></html>'
     )
     app.add_api_route("/", lambda: HTMLResponse(index), include_in_schema=False)
+    # Browsers ask every page's site for /favicon.ico: an icon, not a 404 in the log.
+    icon = web_dir / "favicon.svg"
+    app.add_api_route(
+        "/favicon.ico",
+        lambda: FileResponse(icon, media_type="image/svg+xml"),
+        include_in_schema=False,
+    )
 
 
 def _serve_file(path: Path) -> Callable[[], FileResponse]:

@@ -61,7 +61,22 @@ def test_raw_upload_returns_the_message_facts(client: TestClient) -> None:
 
 def test_fast_profile_sends_data_on_almost_every_refresh(client: TestClient) -> None:
     facts = upload(client, b"x" * 100, "?profile=fast&cells=16")
-    assert 256 * 30 < facts["bit_rate_60hz"] < 256 * 60
+    assert facts["bit_rate_60hz"] == 256 * 60 * 31 / 32  # one refresh in 32 is a key frame
+
+
+def test_one_bit_rate_per_profile_and_cells_whatever_the_message(client: TestClient) -> None:
+    rates = {
+        upload(client, b"y" * size, "?profile=fast&cells=12")["bit_rate_60hz"]
+        for size in (1, 100, 1_000, 4_000)
+    }
+    (rate,) = rates
+    assert rate == round(rate, 1)
+    listed = client.get("/api/messages").json()["messages"]
+    assert {m["bit_rate_60hz"] for m in listed} == {rate}
+    assert all(isinstance(m["frames_per_loop"], int) for m in listed)
+    schema = client.get("/openapi.json").json()["components"]["schemas"]["MessagePublic"]
+    assert schema["properties"]["frames_per_loop"]["type"] == "integer"
+    assert "null" not in schema["properties"]["frames_per_loop"]["description"]
 
 
 def test_defaults_come_from_settings(tmp_path: Path) -> None:

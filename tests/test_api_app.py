@@ -6,6 +6,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import urllib.request
@@ -50,6 +51,12 @@ def test_pages_and_assets_are_served(client: TestClient) -> None:
     assert script.status_code == 200 and "javascript" in script.headers["content-type"]
     assert client.get("/static/style.css").status_code == 200
     assert client.get("/static/missing.js").status_code == 404
+
+
+def test_the_site_has_an_icon_where_browsers_ask_for_it(client: TestClient) -> None:
+    icon = client.get("/favicon.ico")
+    assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
+    assert icon.text.startswith("<svg")
 
 
 def test_openapi_documents_every_upload_form_and_resolves_its_refs(client: TestClient) -> None:
@@ -234,3 +241,18 @@ def test_demo_stopped_by_sigterm_stops_its_receiver_too(tmp_path: Path) -> None:
     finally:
         demo_process.kill()
     assert not Path(f"/proc/{receiver_pid}").exists(), "the receiver outlived the demo"
+
+
+def test_a_port_left_in_time_wait_is_free_for_the_demo_again() -> None:
+    """The demo restarted within a minute kept finding its port busy and moved to another."""
+    with socket.socket() as listener:
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        client = socket.create_connection(("127.0.0.1", port))
+        served, _ = listener.accept()
+        served.close()  # the server side closes first: its end waits in TIME_WAIT
+        client.recv(1)
+        client.close()
+    assert demo.port_is_free("127.0.0.1", port)

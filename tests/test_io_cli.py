@@ -1,8 +1,9 @@
-"""``eventocc-receiver info`` and ``convert``."""
+"""``eventocc-receiver info`` and ``convert``; every command's user errors."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from eventocc.receiver.cli import main
 from eventocc.receiver.events import concat, make_events
@@ -60,11 +61,14 @@ def _user_errors(tmp_path) -> list[tuple[list[str], str]]:
     ]
 
 
-def test_every_commands_user_errors_are_one_line(tmp_path, capsys):
-    for args, says in _user_errors(tmp_path):
+@pytest.mark.parametrize("command", ["info", "convert", "decode", "simulate", "receive"])
+def test_every_commands_user_errors_are_one_line(command: str, tmp_path, capsys):
+    cases = [(args, says) for args, says in _user_errors(tmp_path) if args[0] == command]
+    assert cases
+    for args, says in cases:
         assert main(args) == 2, args
         err = capsys.readouterr().err.strip().splitlines()
-        assert err[-1].startswith(f"eventocc-receiver {args[0]}: error: "), (args, err)
+        assert err[-1].startswith(f"eventocc-receiver {command}: error: "), (args, err)
         assert says in err[-1], (args, err)
         assert not any("Traceback" in line for line in err), (args, err)
 

@@ -73,6 +73,8 @@ class ScriptedPipeline:
         self.name = name
 
     def push(self, chunk: np.ndarray) -> list:
+        if not len(chunk):  # as the receiver: a heartbeat of no events changes nothing
+            return []
         self.chunks += 1
         t0, t1 = int(chunk["t"][0]), int(chunk["t"][-1])
         out: list = [StateChange(t0, "tracking", "marker detected")] if self.chunks == 1 else []
@@ -446,3 +448,43 @@ def test_live_clock_says_how_late_and_what_is_due_now() -> None:
     now[0] += 0.5
     assert clock.wait(1_300_000) == pytest.approx(0.45), "late: it says by how much"
     assert clock.now_us() == 1_750_000
+
+
+class PausingSource(ListSource):
+    """A virtual camera whose screen is paused between two stretches of events: it yields empty
+    heartbeats and says why (``waiting``) meanwhile."""
+
+    def __init__(self) -> None:
+        super().__init__([])
+        self.waiting: str | None = None
+
+    def chunks(self):
+        yield chunk(0, 9_999)
+        self.waiting = "the transmitter page is paused"
+        yield chunk(0, 0, n=0)
+        self.waiting = None
+        yield chunk(10_000, 19_999)
+
+
+def test_a_source_with_nothing_to_show_makes_the_daemon_idle_and_say_why(tmp_path) -> None:
+    source, sink = PausingSource(), ListSink()
+    daemon = Daemon(
+        source, ScriptedPipeline(), sink, OutputFolder(tmp_path / "out"), DaemonConfig(news_hz=1e6)
+    )
+    states = []
+    for events in source.chunks():
+        daemon.process(events)
+        states.append(daemon.state)
+    assert states == [TrackingState.TRACKING, TrackingState.IDLE, TrackingState.SCANNING]
+    waits = [(h.state, h.waiting) for h in sink.of(HealthReport)]
+    assert (TrackingState.IDLE, "the transmitter page is paused") in waits
+    assert waits[-1] == (TrackingState.SCANNING, None), "not a frozen 'tracking'"
+
+
+def test_a_long_reason_to_wait_is_cut_to_fit_the_report(tmp_path) -> None:
+    source, sink = PausingSource(), ListSink()
+    daemon = Daemon(source, ScriptedPipeline(), sink, OutputFolder(tmp_path / "out"))
+    source.waiting = "the server says: " + "x" * 1000
+    daemon.publish_news(None)
+    (health,) = sink.of(HealthReport)
+    assert health.waiting.startswith("the server says: xxx") and len(health.waiting) <= 300

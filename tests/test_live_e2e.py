@@ -84,6 +84,7 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
         row = page.locator(f'#receptions li[data-sha256="{digest}"]')
         expect(row).to_contain_text("hello.txt", timeout=180_000)
         expect(row).to_contain_text("matches upload")
+        expect(row).to_contain_text("message at")  # its own rate, not the link's goodput
         expect(page.locator("#pose-readout")).to_contain_text("distance", timeout=30_000)
         expect(page.locator("#tracking-state")).to_have_text("tracking", timeout=30_000)
         # Verified frames keep flowing after the message completed: goodput is not zero.
@@ -93,6 +94,12 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
         page.screenshot(path=str(artifacts / "dashboard.png"), full_page=True)
         readout = page.locator("#pose-readout").text_content()
         href = row.locator("a").get_attribute("href")
+        # A transmitter page with nothing to play shows the camera nothing: idle, and why.
+        paused = {"message_id": None, "playing": False}
+        page.request.post(f"{base_url}/api/transmitter/status", data=paused)
+        expect(page.locator("#tracking-state")).to_have_text(
+            "idle: the transmitter page has no message to play", timeout=30_000
+        )
     finally:
         daemon.send_signal(signal.SIGTERM)
         _, log = daemon.communicate(timeout=60)

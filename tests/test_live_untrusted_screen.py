@@ -9,7 +9,8 @@ import logging
 import socket
 import threading
 import time
-from datetime import UTC, datetime
+from collections.abc import Callable
+from datetime import UTC, datetime, timedelta
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -19,7 +20,7 @@ import pytest
 from eventocc.occ.profiles import LinkSettings
 from eventocc.receiver.events import make_events
 from eventocc.receiver.live.daemon import Daemon, LinkFollower, OutputFolder
-from eventocc.receiver.live.screen import ScreenWatch, StatusError, TransmitterClient
+from eventocc.receiver.live.screen import Idle, ScreenWatch, StatusError, TransmitterClient
 from tests.test_live_follow import DaemonProcess
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,7 +42,7 @@ class StubServer:
     the others): it says whatever a test wants, as no real server would."""
 
     def __init__(self) -> None:
-        self.routes: dict[str, bytes] = {}
+        self.routes: dict[str, bytes | Callable[[], bytes]] = {}
         routes = self.routes
 
         class Handler(BaseHTTPRequestHandler):
@@ -50,6 +51,8 @@ class StubServer:
                     self.close_connection = True
                     return
                 body = routes.get(self.path)
+                if callable(body):
+                    body = body()
                 self.send_response(404 if body is None else 200)
                 self.send_header("Content-Length", str(len(body or b"")))
                 self.end_headers()
@@ -65,8 +68,12 @@ class StubServer:
         ).start()
 
     def status(self, status: dict | str) -> None:
+        """Say the transmitter shows ``status``; one received at ``NOW`` is stamped at each
+        request, as from a page reporting all along (the module's ``NOW`` ages)."""
         body = status if isinstance(status, str) else json.dumps(status)
-        self.routes["/api/transmitter/status"] = body.encode()
+        self.routes["/api/transmitter/status"] = lambda: body.replace(
+            NOW, datetime.now(UTC).isoformat()
+        ).encode()
 
 
 @pytest.fixture
@@ -143,8 +150,42 @@ def test_a_good_status_still_gives_what_the_page_shows(stub) -> None:
     showing = TransmitterClient(stub.url).showing()
     assert showing.link == LinkSettings("fast", 12, 144.0)
     assert (showing.message_id, showing.refresh_hz) == ("0123456789ab", 143.9)
-    stub.status({**GOOD, "playing": False})
-    assert TransmitterClient(stub.url).showing() is None
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        ({"playing": False}, "the transmitter page is paused"),
+        ({"message_id": None}, "the transmitter page has no message to play"),
+        (
+            {"received": (datetime.now(UTC) - timedelta(seconds=120)).isoformat()},
+            "no transmitter page plays (none reported for 90 s)",
+        ),
+    ],
+)
+def test_a_paused_or_closed_page_shows_the_camera_nothing(stub, change, reason) -> None:
+    stub.status({**GOOD, **change})
+    showing = TransmitterClient(stub.url).showing()
+    assert showing == Idle(reason)
+
+
+def listed(message_id: str, profile: str, cells: int) -> dict:
+    return {"id": message_id, "name": f"{message_id}.txt", "profile": profile, "cells": cells}
+
+
+def test_until_a_page_reports_the_stand_in_plays_not_the_newest_upload(stub) -> None:
+    sample, newest = listed("sample", "robust", 16), listed("newest", "fast", 12)
+    stub.routes["/api/messages"] = json.dumps({"messages": [newest, sample]}).encode()
+    stub.routes["/api/messages/sample"] = json.dumps(sample).encode()
+    assert TransmitterClient(stub.url).showing().message_id == "newest"
+    showing = TransmitterClient(stub.url, stand_in="sample").showing()
+    assert (showing.message_id, showing.link, showing.frame_now) == (
+        "sample",
+        LinkSettings("robust", 16),
+        0,
+    )
+    gone = TransmitterClient(stub.url, stand_in="deleted").showing()
+    assert gone == Idle("no page has reported and message deleted is gone")
 
 
 def test_a_server_that_does_not_speak_http_reads_as_unreachable() -> None:

@@ -277,11 +277,14 @@ function drawMessages() {
       link.textContent = r.name || r.id;
       link.download = r.name || r.id;
       const facts = document.createElement("span");
-      const speed = r.goodput_bps ? `, ${formatRate(r.goodput_bps, "bit/s")}` : "";
+      // The message's own rate, not the link's goodput (every verified frame's payload, repair
+      // symbols included): its bits over the time from its first symbol to its last.
+      const speed = r.goodput_bps ? `, message at ${formatRate(r.goodput_bps, "bit/s")}` : "";
       // Matching an upload or the sender's in-band sha256 checks the bytes; paper sends none.
       const check = r.message_id ? "sha256 matches upload" : r.verified ? "sha256 matches sender's" : "unchecked";
       facts.className = r.message_id || r.verified ? "verified" : "muted";
       facts.textContent = `${r.size} B, ${check}${speed}`;
+      facts.title = "the message's bits over the time from its first symbol to its last";
       li.append(link, facts);
       return li;
     }),
@@ -291,9 +294,9 @@ function drawMessages() {
 function drawState() {
   const h = state.health;
   if (h) {
-    $("tracking-state").textContent = h.state;
     $("cpu-load").textContent = `${(100 * h.cpu_load).toFixed(0)} % of a core`;
     showSourceSpeed(h.source_speed);
+    showWaiting(h);
     showCamera(h.camera);
     drawSight();
   }
@@ -302,6 +305,14 @@ function drawState() {
     $("frame-stats").textContent =
       `#${f.frame_index}, ${f.bits_read} bits, confidence ${f.confidence_mean.toFixed(2)}`;
   }
+}
+
+function showWaiting(h) {
+  // A source with nothing to show (the transmitter page paused or closed) says why: the
+  // receiver is idle, not tracking with its last pose frozen.
+  $("tracking-state").textContent = h.waiting ? `idle: ${h.waiting}` : h.state;
+  $("tracking-state").dataset.state = h.waiting ? "waiting" : h.state;
+  if (h.waiting) $("source-speed").textContent = "no events: waiting for the screen";
 }
 
 function showSourceSpeed(speed) {

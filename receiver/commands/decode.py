@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
+from eventocc.receiver.commands import add_command, read_with_progress
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.receiver import Receiver
 from eventocc.receiver.pipeline.report import FrameTruth, decode_events
@@ -30,9 +31,7 @@ DEFAULTS = {
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "decode", help="decode the marker in an event recording", description=__doc__
-    )
+    p = add_command(sub, "decode", help="decode the marker in an event recording", doc=__doc__)
     p.add_argument("recording", type=Path, help="event file (RAW, DAT, AEDAT4, bag, npz, h5, ...)")
     p.add_argument(
         "--calibration", type=Path, help="camera calibration file (default: the camera of --scene)"
@@ -99,8 +98,6 @@ def _camera(args: argparse.Namespace, scene):
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from eventocc.receiver.io import read_events
 
     scene = None
@@ -128,23 +125,22 @@ def run(args: argparse.Namespace) -> int:
     truth = None
     if scene is not None:
         truth = FrameTruth(scene.encoder, scene.display.refresh_hz, scene.start_refresh)
-    with tqdm(total=stream.size or None, unit="B", unit_scale=True, desc="decode") as bar:
-        decoded = decode_events(receiver, _checked(stream, camera, bar), truth)
+    chunks = _checked(read_with_progress(stream, desc="decode", quiet=args.quiet), camera)
+    decoded = decode_events(receiver, chunks, truth)
     report = decoded.write(args.out)
     _summarise(report)
     return 0 if report["messages"] else 1
 
 
-def _checked(stream, camera, bar) -> Iterator[np.ndarray]:
-    """The stream's chunks, each checked against the calibrated sensor, with progress shown."""
-    for chunk in stream:
+def _checked(chunks: Iterator[np.ndarray], camera) -> Iterator[np.ndarray]:
+    """The chunks, each checked against the calibrated sensor."""
+    for chunk in chunks:
         if len(chunk) and (chunk["x"].max() >= camera.width or chunk["y"].max() >= camera.height):
             raise ValueError(
                 f"events beyond the calibrated {camera.width}x{camera.height} "
                 "sensor; pass the matching --calibration"
             )
         yield chunk
-        bar.update(stream.position - bar.n)
 
 
 def _summarise(report: dict) -> None:

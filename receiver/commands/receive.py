@@ -7,9 +7,11 @@ is away, reports that matter (poses, messages) wait in the output folder's spool
 when it is back. Ctrl-C stops it.
 
 Sources: ``sim:`` (default) the virtual event camera watching what the server's transmitter
-plays; ``file:PATH`` or ``PATH`` a recording; ``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live
-camera through an optional backend; ``nd-replay:PATH`` a recording replayed as a USB camera
-through the neuromorphic-drivers path (its pace, USB ring and backlog).
+plays (``sim:MESSAGE_ID``: that message until a transmitter page reports, else the newest
+upload; a paused or closed page shows it nothing); ``file:PATH`` or ``PATH`` a recording;
+``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live camera through an optional backend;
+``nd-replay:PATH`` a recording replayed as a USB camera through the neuromorphic-drivers path
+(its pace, USB ring and backlog).
 
 A live camera's own event-rate limiter (on by default, see ``--max-event-rate``) and biases are
 set from ``--camera-config FILE`` and the options below; its temperature and light reading,
@@ -32,6 +34,7 @@ from pathlib import Path
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES, LinkSettings
 from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.commands import add_command
 from eventocc.receiver.live.controls import add_camera_arguments, camera_settings
 from eventocc.receiver.live.daemon import (
     Daemon,
@@ -52,17 +55,14 @@ DEFAULT_LINK = LinkSettings(DEFAULT_PROFILE, 16)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "receive",
-        help="run the live receiver daemon (events -> server)",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = add_command(
+        sub, "receive", help="run the live receiver daemon (events -> server)", doc=__doc__
     )
     p.add_argument(
         "--source",
         default="sim:",
-        help="sim: | file:PATH | PATH | nd: | metavision:[SERIAL] | dv: | nd-replay:PATH  "
-        "(default: sim:)",
+        help="sim:[MESSAGE_ID] | file:PATH | PATH | nd: | metavision:[SERIAL] | dv: | "
+        "nd-replay:PATH (default: sim:)",
     )
     p.add_argument(
         "--pace",
@@ -109,7 +109,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--token",
         default=os.environ.get("EVENTOCC_TOKEN"),
-        help="the server's token (env EVENTOCC_TOKEN), if it has one",
+        help="the server's token, if it has one (default: env EVENTOCC_TOKEN)",
     )
     p.add_argument(
         "--out",

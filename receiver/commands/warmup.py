@@ -17,21 +17,26 @@ from pathlib import Path
 
 import numpy as np
 
+from eventocc.receiver.commands import add_command
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
+    parser = add_command(
+        subparsers,
         "warmup",
         help="compile the kernels once (an install does), so later starts load them at once",
-        description=__doc__.splitlines()[0],
+        doc=__doc__,
     )
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    print("compiling the receiver's kernels (once per install; about a minute on one core)")
+    if not args.quiet:
+        print("compiling the receiver's kernels (once per install; about a minute on one core)")
     warm_up()
-    print(f"compiled in {time.perf_counter() - started:.0f} s")
+    if not args.quiet:
+        print(f"compiled in {time.perf_counter() - started:.0f} s")
     return 0
 
 

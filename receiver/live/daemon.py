@@ -36,6 +36,7 @@ from pydantic import BaseModel
 
 from eventocc.occ.profiles import LinkSettings
 from eventocc.occ.report import (
+    MAX_WAITING,
     CellsReport,
     FrameStats,
     HealthReport,
@@ -301,12 +302,29 @@ class Daemon:
         self.summary.chunks += 1
         self.summary.events += len(chunk)
         self._rate.add(chunk)
+        self.follow_source_waiting()
         self.follow_transmitter()
         self.handle(self.pipeline.push(chunk))
         if time.monotonic() >= self._next_news:
             self._next_news = time.monotonic() + 1.0 / self.config.news_hz
             self.output.flush_poses()
             self.publish_news(chunk)
+
+    def follow_source_waiting(self) -> None:
+        """Idle while the source says it has nothing to show (a paused or closed transmitter
+        page), not the last tracking state frozen; scanning again once it shows something."""
+        if self.source_waiting() is not None:
+            self.state = TrackingState.IDLE
+        elif self.state is TrackingState.IDLE:
+            self.state = TrackingState.SCANNING
+
+    def source_waiting(self) -> str | None:
+        """Why the source gives no events now, cut to what a report holds (a reason may quote
+        a long server answer)."""
+        waiting = getattr(self.source, "waiting", None)
+        if waiting is None or len(waiting) <= MAX_WAITING:
+            return waiting
+        return waiting[: MAX_WAITING - 1] + "…"
 
     def follow_transmitter(self) -> None:
         """Rebuild the pipeline when the screen's link settings changed."""
@@ -409,6 +427,7 @@ class Daemon:
             detection_failure=(
                 None if self.state is TrackingState.TRACKING else self.pipeline.detection_failure
             ),
+            waiting=self.source_waiting(),
         )
         self.sink.publish(health, durable=False)
         self.output.write_health(health)

@@ -27,6 +27,10 @@ MAX_FRAME_INDEX = 1 << 53
 """A page counts its frames in a JavaScript number, exact up to 2**53: no page shows more."""
 MessageId = Annotated[str, Field(pattern=r"^[0-9A-Za-z_-]{1,64}$")]
 """A message id goes into URL paths, so it must be one plain path segment."""
+PAGE_GONE_S = 90.0
+"""A page reports its status every second while open, and at once when it pauses or is hidden
+(closing it hides it); a browser may slow a hidden tab's reports to one a minute: a page
+silent this long was closed."""
 
 
 class StatusError(ValueError):
@@ -48,6 +52,14 @@ class Showing:
         return (self.message_id, self.link) == (other.message_id, other.link)
 
 
+@dataclass(frozen=True)
+class Idle:
+    """Nothing blinks on the screen: a paused page holds one still frame, a closed one shows
+    nothing; either way a camera sees no message."""
+
+    reason: str
+
+
 class _Status(BaseModel):
     """The fields of ``GET /api/transmitter/status`` the receiver reads."""
 
@@ -59,12 +71,16 @@ class _Status(BaseModel):
     refresh_hz: float | None = None
     received: AwareDatetime
 
-    def showing(self) -> Showing | None:
-        if not (self.playing and self.message_id):
-            return None
+    def showing(self) -> Showing | Idle:
+        age_s = (datetime.now(UTC) - self.received).total_seconds()
+        if age_s > PAGE_GONE_S:
+            return Idle(f"no transmitter page plays (none reported for {PAGE_GONE_S:.0f} s)")
+        if not self.message_id:
+            return Idle("the transmitter page has no message to play")
+        if not self.playing:
+            return Idle("the transmitter page is paused")
         hz = self.refresh_hz or 60.0
         link = LinkSettings(self.profile, self.cells, hz)  # raises for what cannot be received
-        age_s = (datetime.now(UTC) - self.received).total_seconds()
         frame_now = min(self.frame_index + max(0, round(age_s * hz)), MAX_FRAME_INDEX)
         return Showing(self.message_id, link, hz, frame_now)
 
@@ -81,6 +97,16 @@ class _Messages(BaseModel):
     messages: list[_Listed]
 
 
+class _Meta(_Listed):
+    """``GET /api/messages/{id}``, for a stand-in message."""
+
+
+class _Message(BaseModel):
+    """``GET /api/messages/{id}``, for the name of a message being watched."""
+
+    name: str
+
+
 class _Defaults(BaseModel):
     """``GET /api/profiles``."""
 
@@ -88,20 +114,19 @@ class _Defaults(BaseModel):
     default_cells: int
 
 
-class _Message(BaseModel):
-    """``GET /api/messages/{id}``."""
-
-    name: str
-
-
 class TransmitterClient:
     """Reads the server's view of its transmitter page. Nothing it reads is trusted: an answer
     the receiver cannot use raises ``StatusError``, one it cannot get ``OSError``."""
 
-    def __init__(self, server_url: str, *, who: str = "the receiver") -> None:
+    def __init__(
+        self, server_url: str, *, who: str = "the receiver", stand_in: str | None = None
+    ) -> None:
+        """``stand_in``: the message a page is taken to play from frame 0 until one reports
+        (None: the newest upload)."""
         if not server_url.startswith(("http://", "https://")):
             raise SourceError(f"{who} needs the server's http(s) URL, got {server_url!r}")
         self.server_url = server_url.rstrip("/")
+        self.stand_in = stand_in
 
     def get(self, path: str) -> bytes | None:
         """The body of GET ``path``; None on 404 (nothing there yet)."""
@@ -115,17 +140,25 @@ class TransmitterClient:
         except http.client.HTTPException as error:  # not HTTP: as good as unreachable
             raise ConnectionError(f"{self.server_url} answered {path} wrongly: {error!r}") from None
 
-    def showing(self) -> Showing | None:
-        """What the transmitter shows now; its newest upload from frame 0 if no page reported."""
+    def showing(self) -> Showing | Idle:
+        """What the transmitter shows now; until a page reports, the stand-in message (or the
+        newest upload) from frame 0, as if a page played it."""
         status = self.get("/api/transmitter/status")
         try:
             if status is not None:
                 return _Status.model_validate_json(status).showing()
-            listing = _Messages.model_validate_json(self.get("/api/messages") or '{"messages": []}')
-            if not listing.messages:
-                return None
-            newest = listing.messages[0]
-            return Showing(newest.id, LinkSettings(newest.profile, newest.cells), 60.0, 0)
+            if self.stand_in is not None:
+                meta = self.get(f"/api/messages/{self.stand_in}")
+                if meta is None:
+                    return Idle(f"no page has reported and message {self.stand_in} is gone")
+                listed: _Listed = _Meta.model_validate_json(meta)
+            else:
+                body = self.get("/api/messages") or '{"messages": []}'
+                listing = _Messages.model_validate_json(body)
+                if not listing.messages:
+                    return Idle("no message has been uploaded")
+                listed = listing.messages[0]
+            return Showing(listed.id, LinkSettings(listed.profile, listed.cells), 60.0, 0)
         except ValueError as error:  # pydantic's ValidationError, or LinkSettings refusing
             raise StatusError(
                 f"{self.server_url} says its transmitter shows what no receiver can read: "
@@ -151,7 +184,7 @@ class TransmitterClient:
         tell: a receiver starts whether or not the server is up, and follows it later."""
         try:
             showing = self.showing()
-            if showing is not None:
+            if isinstance(showing, Showing):
                 return showing.link
             defaults = _Defaults.model_validate_json(self.get("/api/profiles") or "{}")
             return LinkSettings(defaults.default_profile, defaults.default_cells)
@@ -217,5 +250,5 @@ class ScreenWatch:
             else:
                 log.info("%s answers again", self.client.server_url)
             self._problem = problem
-        if showing is not None:
+        if isinstance(showing, Showing):
             self.link = showing.link

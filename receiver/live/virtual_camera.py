@@ -5,7 +5,9 @@ fetches that message, and simulates an event camera watching that screen in real
 whole loop (upload -> transmitter -> camera -> receiver -> dashboard) closes without hardware.
 When the transmitter switches to another message the simulation restarts on it (and ``link``
 tells the daemon the new link settings). Until a transmitter page reports, the camera watches
-the newest uploaded message from its first frame, as if a page were showing it.
+its stand-in message (``sim:MESSAGE_ID``; ``sim:`` alone: the newest upload) from its first
+frame, as if a page were showing it. A paused page holds one still frame and a closed one
+shows nothing: the camera then sees no events, and ``waiting`` says why.
 
 The simulation runs in a child process (``SimulatorProcess``), a few packets ahead, so that on
 two cores the simulator and the receiver pipeline work side by side. The camera stays live:
@@ -33,7 +35,7 @@ from eventocc.occ.profiles import LinkSettings
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.events import empty_events
-from eventocc.receiver.live.screen import Showing, StatusError, TransmitterClient
+from eventocc.receiver.live.screen import Idle, Showing, StatusError, TransmitterClient
 from eventocc.receiver.live.sources import MAX_LAG_S, BehindNote, LiveClock, SourceError
 
 if TYPE_CHECKING:
@@ -199,6 +201,7 @@ class VirtualCamera:
         self,
         server_url: str,
         *,
+        stand_in: str | None = None,
         camera: CameraModel | None = None,
         motion: str = DEFAULT_MOTION,
         chunk_us: int = 5_000,
@@ -207,8 +210,10 @@ class VirtualCamera:
         clock: LiveClock | None = None,
         simulator: Simulator | None = None,
     ) -> None:
-        """``simulator`` defaults to a ``SimulatorProcess``, started on the first ``chunks``."""
-        self.server = TransmitterClient(server_url, who="the virtual camera")
+        """``stand_in``: the message watched until a transmitter page reports (None: the
+        newest upload). ``simulator`` defaults to a ``SimulatorProcess``, started on the first
+        ``chunks``."""
+        self.server = TransmitterClient(server_url, who="the virtual camera", stand_in=stand_in)
         if motion not in MOTIONS:
             raise SourceError(f"unknown motion {motion!r}; choose one of {', '.join(MOTIONS)}")
         self.camera = camera or default_camera()
@@ -226,7 +231,8 @@ class VirtualCamera:
         (1.0: keeping up; None: nothing to watch)."""
         self.skips = 0
         """Times the camera skipped ahead because the simulation fell behind the screen."""
-        self._waiting_for: str | None = None
+        self.waiting: str | None = None
+        """Why the camera sees nothing now (None while it watches a message)."""
         self._watching: Showing | None = None
         self._timeline: tuple[int, int, float] | None = None
         """(event time, frame, period in us) of the stream watched: frame k is on screen from
@@ -322,7 +328,7 @@ class VirtualCamera:
             return self._wait(f"cannot fetch message {showing.message_id} ({error})")
         except (LookupError, ValueError) as error:  # gone, or no encoder takes it
             return self._wait(f"cannot show message {showing.message_id}: {error}")
-        self._waiting_for = None
+        self.waiting = None
         return scene, showing, t_offset
 
     def _resume(self, showing: Showing) -> tuple[Showing, int]:
@@ -376,15 +382,15 @@ class VirtualCamera:
             return self._wait(f"server unreachable ({error})")
         except StatusError as error:
             return self._wait(str(error))
-        if showing is None:
-            return self._wait("nothing is playing", logging.INFO)
+        if isinstance(showing, Idle):
+            return self._wait(showing.reason, logging.INFO)
         return showing
 
     def _wait(self, reason: str, level: int = logging.WARNING) -> None:
         """Say once why the camera waits (until it watches something again)."""
-        if reason != self._waiting_for:
+        if reason != self.waiting:
             log.log(level, "virtual camera waiting: %s", reason)
-        self._waiting_for = reason
+        self.waiting = reason
 
 
 def _speed(simulated_us: int, later_by_s: float) -> float:

@@ -49,13 +49,14 @@ class MessagePublic(BaseModel):
     profile: str
     cells: int = Field(description="Payload cells across (N); the marker shows N x N data cells.")
     created: datetime
-    frames_per_loop: int | None = Field(
-        description="Display refreshes before the stream repeats; null for an endless "
-        "(fountain-coded) stream."
+    frames_per_loop: int = Field(
+        description="Display refreshes before the stream repeats: finite for every profile "
+        "(a fountain-coded stream sends a bounded number of repair symbols, then loops)."
     )
     bits_per_frame: int = Field(description="Payload cells of one data frame.")
     bit_rate_60hz: float = Field(
-        description="Raw cell bits per second on a 60 Hz display (before framing and FEC)."
+        description="Raw cell bits per second on a 60 Hz display (before framing and FEC), "
+        "to 0.1 bit/s: the same for every message of a profile and cell count."
     )
 
 
