@@ -11,7 +11,7 @@ from pathlib import Path
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.receiver import Receiver
-from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.report import DecodeLog
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +112,7 @@ def _run(args: argparse.Namespace) -> int:
     scene = None
     if args.scene is not None:
         from eventocc.receiver.sim import Scene
+        from eventocc.receiver.sim.truth import SceneTruth
 
         scene = Scene.from_dict(json.loads(args.scene.read_text()))
     _link_settings(args, scene)
@@ -133,7 +134,7 @@ def _run(args: argparse.Namespace) -> int:
     receiver = Receiver(config, message_size=args.message_size)
     truth = None
     if scene is not None:
-        truth = FrameTruth(scene.encoder, scene.display.refresh_hz, scene.start_refresh)
+        truth = SceneTruth(scene)
     decoded = DecodeLog(receiver, truth)
     with tqdm(total=stream.size or None, unit="B", unit_scale=True, desc="decode") as bar:
         for chunk in stream:
