@@ -1,0 +1,84 @@
+"""The randomized scene suite: the receiver over the range real cameras and screens span.
+
+    python -m bench.scenes [--scenes 240] [--seed 0] [--jobs 2] [--out docs]
+
+Draws ``--scenes`` scenes of the suite of ``--seed`` (``bench.scenes.draw``), simulates each and
+runs the streaming receiver on it (``bench.scenes.run``), then writes the per-scene results to
+``<out>/results/scenes.json`` and the distributions (``bench.scenes.summary``) to its section of
+``<out>/BENCHMARKS.md``. Scenes run ``--jobs`` at a time, with the same results for any number
+of jobs; ``--only`` reruns chosen scene indices and prints their results without writing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")  # one core per job: --jobs sets the parallelism
+
+from bench.report import write_section
+from bench.scenes.draw import draw
+from bench.scenes.run import run_scene
+from bench.scenes.summary import summarise
+
+DOCS = Path(__file__).resolve().parent.parent.parent / "docs"
+
+
+def _run_index(seed: int, index: int) -> dict:
+    return run_scene(draw(seed, index))
+
+
+def run_suite(seed: int, indices: list[int], jobs: int, progress: bool = True) -> list[dict]:
+    """The results of scenes ``indices`` of the suite of ``seed``, in that order."""
+    if jobs <= 1:
+        return [_run_index(seed, i) for i in indices]
+    results: list[dict | None] = [None] * len(indices)
+    with ProcessPoolExecutor(jobs) as pool:
+        futures = {pool.submit(_run_index, seed, i): k for k, i in enumerate(indices)}
+        for done, future in enumerate(as_completed(futures), 1):
+            r = results[futures[future]] = future.result()
+            if progress:
+                print(
+                    f"[scenes] {done}/{len(indices)}: scene {r['draw']['index']} "
+                    f"lock {r['first_lock_ms']} ms, delivered {r['delivered']}, "
+                    f"{r['wall_s']:.0f} s\n{json.dumps(r)}",
+                    flush=True,
+                )
+    return results  # type: ignore[return-value]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.scenes", description=__doc__.split("\n")[0]
+    )
+    parser.add_argument("--scenes", type=int, default=240, help="scenes to draw and run")
+    parser.add_argument("--seed", type=int, default=0, help="the suite's seed")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count(), help="scenes run at once")
+    parser.add_argument("--out", type=Path, default=DOCS, help="folder of BENCHMARKS.md")
+    parser.add_argument(
+        "--only", type=int, nargs="+", help="rerun these scene indices, print, write nothing"
+    )
+    args = parser.parse_args(argv)
+    indices = args.only or list(range(args.scenes))
+    t0 = time.perf_counter()
+    results = run_suite(args.seed, indices, args.jobs)
+    wall = time.perf_counter() - t0
+    if args.only:
+        print(json.dumps(results, indent=1, default=str))
+        return
+    (args.out / "results").mkdir(parents=True, exist_ok=True)
+    (args.out / "results" / "scenes.json").write_text(json.dumps(results, indent=1) + "\n")
+    command = f"python -m bench.scenes --scenes {args.scenes} --seed {args.seed} --jobs {args.jobs}"
+    body = summarise(results, wall_s=wall, jobs=args.jobs)
+    write_section(
+        "scenes", "Randomized scene suite", command, body, path=args.out / "BENCHMARKS.md"
+    )
+    print(body)
+
+
+if __name__ == "__main__":
+    main()
