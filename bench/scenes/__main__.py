@@ -6,7 +6,8 @@ Draws ``--scenes`` scenes of the suite of ``--seed`` (``bench.scenes.draw``), si
 runs the streaming receiver on it (``bench.scenes.run``), then writes the per-scene results to
 ``<out>/results/scenes.json`` and the distributions (``bench.scenes.summary``) to its section of
 ``<out>/BENCHMARKS.md``. Scenes run ``--jobs`` at a time, with the same results for any number
-of jobs; ``--only`` reruns chosen scene indices and prints their results without writing.
+of jobs; ``--only`` reruns chosen scene indices and prints their results without writing, and
+``--report-only`` rewrites the section from the saved results.
 """
 
 from __future__ import annotations
@@ -51,6 +52,13 @@ def run_suite(seed: int, indices: list[int], jobs: int, progress: bool = True) -
     return results  # type: ignore[return-value]
 
 
+def write_report(run: dict, out: Path) -> str:
+    """The suite's section of ``out/BENCHMARKS.md`` from a run (``results/scenes.json``)."""
+    body = summarise(run["scenes"], wall_s=run["wall_s"], jobs=run["jobs"])
+    write_section("scenes", "Randomized scene suite", run["command"], body, out / "BENCHMARKS.md")
+    return body
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m bench.scenes", description=__doc__.split("\n")[0]
@@ -62,22 +70,32 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--only", type=int, nargs="+", help="rerun these scene indices, print, write nothing"
     )
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rewrite the section from <out>/results/scenes.json without running",
+    )
     args = parser.parse_args(argv)
+    saved = args.out / "results" / "scenes.json"
+    if args.report_only:
+        print(write_report(json.loads(saved.read_text()), args.out))
+        return
     indices = args.only or list(range(args.scenes))
     t0 = time.perf_counter()
     results = run_suite(args.seed, indices, args.jobs)
-    wall = time.perf_counter() - t0
     if args.only:
-        print(json.dumps(results, indent=1, default=str))
+        print(json.dumps(results, indent=1))
         return
-    (args.out / "results").mkdir(parents=True, exist_ok=True)
-    (args.out / "results" / "scenes.json").write_text(json.dumps(results, indent=1) + "\n")
-    command = f"python -m bench.scenes --scenes {args.scenes} --seed {args.seed} --jobs {args.jobs}"
-    body = summarise(results, wall_s=wall, jobs=args.jobs)
-    write_section(
-        "scenes", "Randomized scene suite", command, body, path=args.out / "BENCHMARKS.md"
-    )
-    print(body)
+    run = {
+        "command": f"python -m bench.scenes --scenes {args.scenes} --seed {args.seed} "
+        f"--jobs {args.jobs}",
+        "wall_s": time.perf_counter() - t0,
+        "jobs": args.jobs,
+        "scenes": results,
+    }
+    saved.parent.mkdir(parents=True, exist_ok=True)
+    saved.write_text(json.dumps(run, indent=1) + "\n")
+    print(write_report(run, args.out))
 
 
 if __name__ == "__main__":
