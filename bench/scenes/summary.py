@@ -250,7 +250,6 @@ def parameter_table(results: list[Result]) -> str:
 def failure_table(results: list[Result]) -> str:
     """The detection failures of the scenes that did not lock within ``LOCK_MS``: per reason
     (numbers left out), the scenes where it was the commonest, and the attempts it stopped."""
-    first: Counter[str] = Counter()
     attempts: Counter[str] = Counter()
     scenes: dict[str, list[Result]] = defaultdict(list)
     late = [r for r in results if not r["lock_ok"]]
@@ -260,23 +259,22 @@ def failure_table(results: list[Result]) -> str:
             kinds[reason_kind(reason)] += n
         attempts.update(kinds)
         if kinds:
-            top = kinds.most_common(1)[0][0]
-            first[top] += 1
-            scenes[top].append(r)
+            scenes[kinds.most_common(1)[0][0]].append(r)
     lines = [
-        "| detection failure (numbers left out) | late scenes where commonest | attempts, all "
-        "late scenes | their px per cell, N: medians |",
+        "| detection failure (numbers left out) | late scenes where commonest (still, hand-held) "
+        "| attempts, all late scenes | their px per cell, N: medians |",
         "|---|---|---|---|",
     ]
     for kind, n in attempts.most_common(12):
         group = scenes.get(kind, [])
+        moving = sum(r["draw"]["flow_px_per_ms"] > 0 for r in group)
         where = (
             f"{np.median([r['draw']['cell_px'] for r in group]):.1f}, "
             f"{np.median([r['draw']['cells'] for r in group]):.0f}"
             if group
             else ""
         )
-        lines.append(f"| {kind} | {first.get(kind, 0)} | {n} | {where} |")
+        lines.append(f"| {kind} | {len(group)} ({len(group) - moving}, {moving}) | {n} | {where} |")
     return "\n".join(lines)
 
 
@@ -289,6 +287,7 @@ def summarise(results: list[Result], wall_s: float, jobs: int) -> str:
     before = sum(r["locked_before_marker"] for r in results)
     wrong_first = sum(r["first_lock_wrong"] for r in results)
     wrong_msgs = sum(r["wrong_messages"] for r in results)
+    missed = Counter(m for r in results for m in failed(r))
     on = [r["on_per_transition"] for r in results if r["on_per_transition"] is not None]
     ranges = "; ".join(
         f"{k} {lo:g}-{hi:g}" for k, (lo, hi) in RANGES.items() if k not in ("time_base_us",)
@@ -296,7 +295,9 @@ def summarise(results: list[Result], wall_s: float, jobs: int) -> str:
     return f"""**In short:** {headline}
 
 {len(results)} scenes ({moving} hand-held, {len(results) - moving} still), {len(covered)} of
-them in the targets' range; wall time {wall_s / 60:.0f} min with {jobs} jobs (simulator
+them in the targets' range. Over all scenes: no lock within {LOCK_MS:g} ms in {missed["lock"]},
+more than {OFF_SCENE:.1%} of the poses off in {missed["poses"]}, no message in
+{missed["message"]}; wall time {wall_s / 60:.0f} min with {jobs} jobs (simulator
 {sim / 60:.0f} CPU min, receiver {rx / 60:.0f}). Locked before the marker appeared (on the
 lead-in): {before} scenes; first lock more than {100 * WRONG_M:g} cm off within its first
 50 ms: {wrong_first}; messages delivered wrong: {wrong_msgs}. ON events per pixel per
