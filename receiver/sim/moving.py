@@ -514,7 +514,7 @@ def _moving_window(
         if done[i] >= window_end:
             continue
         m = ends[min(q - (w + i // _STAGGER_RUN) % q, last)]
-        screen = (geo, disp, (rad[0], rad[1], rad[2], dark[i]))
+        own = (geo, disp, (rad[0], rad[1], rad[2], dark[i]))
         saved = (state[REF, i], state[LAST, i], state[LEVEL, i])
         n_before = n
         rx, ry = rays[y, x, 0], rays[y, x, 1]
@@ -550,7 +550,7 @@ def _moving_window(
                     counts[0],
                     nd_a,
                     path,
-                    screen,
+                    own,
                     lum,
                     i,
                     state,
@@ -560,11 +560,11 @@ def _moving_window(
                 )
             nd = _merge(regs, counts, nd_a, nd_b, merged, w0, w1)
             v = _row_of(py_b, geo)
-            if closed_form and _same_light(t_a, t_b, v, merged, w0, w1, nd, screen[1], lum):
+            if closed_form and _same_light(t_a, t_b, v, merged, w0, w1, nd, disp, lum):
                 t_run = t_a  # a run of the new content from here on sees the same light
             else:
                 n = _sampled_step(
-                    t_a, t_b, v, merged, w0, w1, nd, times, screen, lum, i, state, rfr, out, n
+                    t_a, t_b, v, merged, w0, w1, nd, times, own, lum, i, state, rfr, out, n
                 )
                 t_run = t_b
             regs[0, :nd_b] = regs[1, :nd_b]
@@ -581,7 +581,7 @@ def _moving_window(
                 counts[0],
                 nd_a,
                 path,
-                screen,
+                own,
                 lum,
                 i,
                 state,
