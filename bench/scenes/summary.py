@@ -307,9 +307,10 @@ transition (median per scene, pixels of a sparse grid that saw at least three): 
 How it is drawn and scored: each scene draws, independently, the display, sensor, optics,
 geometry, time and motion ({ranges}; time base 0 or up to 1e10 us; roll any; a lead-in of black
 screen or of bars sweeping the marker's area before the marker appears), N 16-128, the three
-profiles, 60-240 Hz; {HAND_HELD_SHARE:.0%} of scenes are hand-held, their markers at most
-{MOVING_MAX_PX} px across (the moving simulator's cost grows with the marker's pixels) with
-room to wander; the sensor is the smallest of {", ".join(f"{w}x{h}" for w, h in SENSORS)}
+profiles, 60-240 Hz. A scene is drawn hand-held with probability {HAND_HELD_SHARE:.0%}, but its
+marker must then span at most {MOVING_MAX_PX} px (the moving simulator's cost grows with the
+marker's pixels) with room to wander, and draws that do not fit are drawn again, so fewer end
+up hand-held; the sensor is the smallest of {", ".join(f"{w}x{h}" for w, h in SENSORS)}
 the marker fits. Each clip runs to {AFTER_S:g} s after the marker appears. Pixels per cell:
 at the marker centre as if seen square-on (a 45 degree view shortens one axis by 30%). The
 receiver is told what a user tells it (profile, N, refresh rate, the calibration, the marker
