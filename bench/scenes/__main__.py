@@ -6,8 +6,9 @@ Draws ``--scenes`` scenes of the suite of ``--seed`` (``bench.scenes.draw``), si
 runs the streaming receiver on it (``bench.scenes.run``), then writes the per-scene results to
 ``<out>/results/scenes.json`` and the distributions (``bench.scenes.summary``) to its section of
 ``<out>/BENCHMARKS.md``. Scenes run ``--jobs`` at a time, with the same results for any number
-of jobs; ``--only`` reruns chosen scene indices and prints their results without writing, and
-``--report-only`` rewrites the section from the saved results.
+of jobs. Each scene's result is printed as it completes, and ``--resume`` takes those of an
+earlier run's output; ``--only`` reruns chosen scene indices and prints their results without
+writing, and ``--report-only`` rewrites the section from the saved results.
 """
 
 from __future__ import annotations
@@ -33,23 +34,50 @@ def _run_index(seed: int, index: int) -> dict:
     return run_scene(draw(seed, index))
 
 
-def run_suite(seed: int, indices: list[int], jobs: int, progress: bool = True) -> list[dict]:
-    """The results of scenes ``indices`` of the suite of ``seed``, in that order."""
+def earlier_results(path: Path, seed: int) -> dict[int, dict]:
+    """Results printed by an earlier run (its output, one JSON line per scene) whose scene is
+    still drawn the same, by index: the simulator and the receiver give such a scene the same
+    outputs again."""
+    found = {}
+    for line in path.read_text().splitlines():
+        if line.startswith("{"):
+            r = json.loads(line)
+            d = r["draw"]
+            if d["seed"] == seed and draw(seed, d["index"]).to_dict() == d:
+                found[d["index"]] = r
+    return found
+
+
+def run_suite(
+    seed: int, indices: list[int], jobs: int, done: dict[int, dict] | None = None
+) -> list[dict]:
+    """The results of scenes ``indices`` of the suite of ``seed``, in that order (those in
+    ``done`` taken from there), each printed as it completes."""
+    done = done or {}
+    todo = [i for i in indices if i not in done]
+    results = dict(done)
     if jobs <= 1:
-        return [_run_index(seed, i) for i in indices]
-    results: list[dict | None] = [None] * len(indices)
+        completed = (_run_index(seed, i) for i in todo)
+        for n, r in enumerate(completed, 1):
+            results[r["draw"]["index"]] = r
+            _progress(n, len(todo), r)
+        return [results[i] for i in indices]
     with ProcessPoolExecutor(jobs) as pool:
-        futures = {pool.submit(_run_index, seed, i): k for k, i in enumerate(indices)}
-        for done, future in enumerate(as_completed(futures), 1):
-            r = results[futures[future]] = future.result()
-            if progress:
-                print(
-                    f"[scenes] {done}/{len(indices)}: scene {r['draw']['index']} "
-                    f"lock {r['first_lock_ms']} ms, delivered {r['delivered']}, "
-                    f"{r['wall_s']:.0f} s\n{json.dumps(r)}",
-                    flush=True,
-                )
-    return results  # type: ignore[return-value]
+        futures = [pool.submit(_run_index, seed, i) for i in todo]
+        for n, future in enumerate(as_completed(futures), 1):
+            r = future.result()
+            results[r["draw"]["index"]] = r
+            _progress(n, len(todo), r)
+    return [results[i] for i in indices]
+
+
+def _progress(n: int, total: int, r: dict) -> None:
+    """A line for a person, then the result as one JSON line (``--resume`` reads those)."""
+    print(
+        f"[scenes] {n}/{total}: scene {r['draw']['index']} lock {r['first_lock_ms']} ms, "
+        f"delivered {r['delivered']}, {r['wall_s']:.0f} s\n{json.dumps(r)}",
+        flush=True,
+    )
 
 
 def write_report(run: dict, out: Path) -> str:
@@ -71,6 +99,11 @@ def main(argv: list[str] | None = None) -> None:
         "--only", type=int, nargs="+", help="rerun these scene indices, print, write nothing"
     )
     parser.add_argument(
+        "--resume",
+        type=Path,
+        help="take the scenes an earlier run printed (its output) instead of running them again",
+    )
+    parser.add_argument(
         "--report-only",
         action="store_true",
         help="rewrite the section from <out>/results/scenes.json without running",
@@ -82,13 +115,16 @@ def main(argv: list[str] | None = None) -> None:
         return
     indices = args.only or list(range(args.scenes))
     t0 = time.perf_counter()
-    results = run_suite(args.seed, indices, args.jobs)
+    done = earlier_results(args.resume, args.seed) if args.resume else {}
+    results = run_suite(args.seed, indices, args.jobs, done)
     if args.only:
         print(json.dumps(results, indent=1))
         return
+    resumed = sum(i in done for i in indices)
     run = {
         "command": f"python -m bench.scenes --scenes {args.scenes} --seed {args.seed} "
-        f"--jobs {args.jobs}",
+        f"--jobs {args.jobs}"
+        + (f" (resumed: {resumed} scenes from an earlier run)" if resumed else ""),
         "wall_s": time.perf_counter() - t0,
         "jobs": args.jobs,
         "scenes": results,

@@ -40,13 +40,18 @@ up to 70% of the room left and turns it by up to 12 degrees."""
 MOVING_MAX_PX = 240
 """A hand-held scene's marker spans at most this many pixels: the simulator's moving camera costs
 CPU time in proportion to the marker's pixels (``docs/BENCHMARKS.md``'s simulator section)."""
+PWM_MAX_PX = 240
+"""A PWM backlight only on markers that span at most this many pixels (square-on): its edges make
+every lit pixel fire twice per PWM period, and a 1.4 kHz backlight on a 740 px marker took the
+simulator past 15 CPU minutes for a 1.6 s clip."""
 AFTER_S = 0.7
 """Simulated seconds after the marker appears."""
 MESSAGE_SHARE = 0.15
 """A message takes this share of the raw capacity of ``AFTER_S``: it spans many frames, and
 leaves room for the lock, FEC and a frame or two missed."""
-PWM_SHARE = 0.15
-"""Share of still scenes with a PWM backlight (the simulator renders PWM for still cameras)."""
+PWM_SHARE = 0.5
+"""Share of still scenes with a PWM backlight (the simulator renders PWM for still cameras),
+where the marker is small enough (``PWM_MAX_PX``)."""
 
 RANGES: dict[str, tuple[float, float]] = {
     "cell_px": (4.0, 30.0),
@@ -261,7 +266,8 @@ def draw(seed: int, index: int) -> SceneDraw:
     threshold_on = u("threshold")
     threshold_off = float(np.clip(threshold_on * math.exp(rng.uniform(-0.2, 0.2)), 0.12, 0.5))
     latency = u("latency_us")
-    pwm = not moving and u.chance(PWM_SHARE)
+    small = MarkerGeometry(cells).side * cell_px <= PWM_MAX_PX
+    pwm = not moving and u.chance(PWM_SHARE) and small
     raw_bps = cells**2 * refresh / get_profile(profile).data_every
     lead_in = round(u("lead_in_s") * refresh)
     return SceneDraw(
