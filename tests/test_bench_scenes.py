@@ -6,6 +6,7 @@ measures them (docs/BENCHMARKS.md)."""
 from __future__ import annotations
 
 import functools
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -22,6 +23,7 @@ from bench.scenes.draw import (
     draw,
 )
 from bench.scenes.run import (
+    earlier_results,
     on_per_transition,
     pose_errors,
     reason_kind,
@@ -273,3 +275,14 @@ def test_easy_scenes_lock_on_time_read_the_message_and_track_right(changes):
     assert r["pose_off_share"] <= 0.005
     assert r["ber"] < 0.01
     assert r["on_per_transition"] is not None
+
+
+def test_a_resumed_run_takes_only_the_scenes_still_drawn_the_same(tmp_path):
+    same = {"draw": DRAWS[5].to_dict(), "first_lock_ms": 80.0}
+    changed = {"draw": replace(DRAWS[6], refresh_hz=61.0).to_dict(), "first_lock_ms": 90.0}
+    log = tmp_path / "run.log"
+    log.write_text(
+        f"[scenes] 1/2: scene 5\n{json.dumps(same)}\n[scenes] 2/2: scene 6\n{json.dumps(changed)}\n"
+    )
+    assert earlier_results(log, 7) == {5: same}
+    assert earlier_results(log, 8) == {}

@@ -24,7 +24,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")  # one core per job: --jobs sets
 
 from bench.report import write_section
 from bench.scenes.draw import draw
-from bench.scenes.run import run_scene
+from bench.scenes.run import earlier_results, run_scene
 from bench.scenes.summary import summarise
 
 DOCS = Path(__file__).resolve().parent.parent.parent / "docs"
@@ -32,20 +32,6 @@ DOCS = Path(__file__).resolve().parent.parent.parent / "docs"
 
 def _run_index(seed: int, index: int) -> dict:
     return run_scene(draw(seed, index))
-
-
-def earlier_results(path: Path, seed: int) -> dict[int, dict]:
-    """Results printed by an earlier run (its output, one JSON line per scene) whose scene is
-    still drawn the same, by index: the simulator and the receiver give such a scene the same
-    outputs again."""
-    found = {}
-    for line in path.read_text().splitlines():
-        if line.startswith("{"):
-            r = json.loads(line)
-            d = r["draw"]
-            if d["seed"] == seed and draw(seed, d["index"]).to_dict() == d:
-                found[d["index"]] = r
-    return found
 
 
 def run_suite(
