@@ -14,7 +14,7 @@ from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 from eventocc.receiver.commands import add_command, read_with_progress
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.receiver import Receiver
-from eventocc.receiver.pipeline.report import FrameTruth, decode_events
+from eventocc.receiver.pipeline.report import decode_events
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
     scene = None
     if args.scene is not None:
         from eventocc.receiver.sim import Scene
+        from eventocc.receiver.sim.truth import SceneTruth
 
         scene = Scene.from_dict(json.loads(args.scene.read_text()))
     _link_settings(args, scene)
@@ -124,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     receiver = Receiver(config, message_size=args.message_size)
     truth = None
     if scene is not None:
-        truth = FrameTruth(scene.encoder, scene.display.refresh_hz, scene.start_refresh)
+        truth = SceneTruth(scene)
     chunks = _checked(read_with_progress(stream, desc="decode", quiet=args.quiet), camera)
     decoded = decode_events(receiver, chunks, truth)
     report = decoded.write(args.out)

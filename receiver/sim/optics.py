@@ -1,4 +1,4 @@
-"""Where each sensor pixel looks: lens rays, pixel-area integration and lens blur.
+"""Where each sensor pixel looks: lens rays, pixel-area integration, lens blur and vignetting.
 
 A pixel's irradiance is the mean scene luminance over a small grid of sample rays around its
 centre. The grid spacing is chosen so the grid's spatial variance equals that of the pixel's
@@ -25,12 +25,19 @@ class Optics:
     is near the diffraction limit, about one pixel wide)."""
     supersample: int = 3
     """Sample rays per pixel along each axis."""
+    vignetting: float = 0.0
+    """Share of the scene's light lost at the image's corners: a pixel at distance r from the
+    principal point gets ``1 - vignetting * (r / r_corner)^2`` of it (the farthest corner's
+    r_corner). It dims the scene, not the sensor's dark floor, so a pixel's contrast between
+    dark levels and its shot noise change while its events between bright ones barely do."""
 
     def __post_init__(self) -> None:
         if self.blur_px < 0:
             raise ValueError(f"blur_px must be >= 0, got {self.blur_px}")
         if not 1 <= self.supersample <= 8:
             raise ValueError(f"supersample must be 1..8, got {self.supersample}")
+        if not 0.0 <= self.vignetting < 1.0:
+            raise ValueError(f"vignetting must be in [0, 1), got {self.vignetting}")
 
     def offsets(self) -> np.ndarray:
         """(S, 2) sample offsets in pixels around a pixel centre."""
@@ -41,6 +48,12 @@ class Optics:
         g = (np.arange(n) - (n - 1) / 2) * spacing
         gx, gy = np.meshgrid(g, g)
         return np.column_stack([gx.ravel(), gy.ravel()])
+
+    def gain(self, camera: CameraModel) -> np.ndarray:
+        """(height * width,) share of the scene's light each pixel gets (row-major)."""
+        ys, xs = np.divmod(np.arange(camera.width * camera.height), camera.width)
+        r2 = (xs - camera.K[0, 2]) ** 2 + (ys - camera.K[1, 2]) ** 2
+        return 1.0 - self.vignetting * r2 / r2.max()
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -427,18 +427,21 @@ class StaticRenderer:
         c_on: np.ndarray,
         c_off: np.ndarray,
         refractory_us: float,
+        dark: np.ndarray | None = None,
     ) -> None:
+        """``dark``: each pixel's (of ``pix_index``) dark floor, ``radiometry.dark`` if None."""
         region = regions(sample_points, layout)
         sees_marker = (region >= 0).any(axis=1)
         region, sample_points = region[sees_marker], sample_points[sees_marker]
         self.pix_index = pix_index[sees_marker]
+        dark = np.full(len(pix_index), radiometry.dark) if dark is None else dark
         self.ptr, self.cells, self.weights = _group_cells(region)
         s = region.shape[1]
         rad = radiometry
         # Constant part of each pixel's irradiance: reflection on its cell samples, the black
         # screen and wall it also sees, and the dark floor.
         self.pix_const = (
-            rad.dark
+            dark[sees_marker]
             + rad.screen_ambient * (region >= 0).sum(1) / s
             + rad.screen_black * (region == SCREEN).sum(1) / s
             + rad.wall * (region == WALL).sum(1) / s
