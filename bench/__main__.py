@@ -50,13 +50,15 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   paper's whole field of view binned to 480x270: the paper's 0.6 m distance, angles and
   motions, fewer pixels per cell (7.7 instead of 20). Flows are in the paper's 1280x720
   pixels. (A crop would need the camera 1.6 m away to fit the marker, where a 27 cm marker's
-  tilt becomes ambiguous and the pose flips to its mirror solution: that made earlier runs'
-  ATE ~30 cm, with or without the hand-held tracker setting.)
+  tilt becomes ambiguous and the pose flips to its mirror solution.)
 - Streaming sizes the marker for the paper's pixels per cell where our marker then fits the
   view; our exterior rings widen with N (the paper's stay one cell), so from N = 32 on the cells
   are smaller than the paper's: the table gives both. Each message is a fifth of the clip's raw
   capacity. Goodput is the paper's throughput: message bits after FEC over the time of the
-  frames that carried them (first frame read to completion).
+  frames that carried them (first frame read to completion), counted only when the message
+  delivered equals the one sent (the `paper` profile sends no checksum, so only this
+  comparison can catch a wrong Reed-Solomon correction); "decodable" likewise. Sections run
+  before commit 807f096 counted any delivered message.
 - Localization uses the receiver's hand-held tracker setting (`bench.tracking`), and RPE as evo
   computes it by default: between consecutive ground-truth samples (the paper's 360 Hz).
 - The frame camera's exposure (4 ms), noise and auto-exposure are our assumptions; the paper
@@ -82,9 +84,9 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   error correction absorbs the rows still showing the previous code. With a blank refresh
   between codes, the bottom of the code is still black or its top already fading: the tags'
   border then lacks part of its white surround, and with motion blur on top (24 px over 4 ms at
-  6 px/ms, about one module) they fail. That is why the tags with blank frames fall from 100% at
-  1 px/ms to 20% at 6 px/ms while without them they stay at 96-100% (seen on the rendered
-  frames of the 6 px/ms clip); QR v1-L reads about as well either way.
+  6 px/ms, about one module) they fail. That is why, in the table, the tags with blank frames
+  fall off as the flow grows while without them they hold (seen on the rendered frames of the
+  6 px/ms clip).
 
 ## Where we fall short of the paper, and why
 
@@ -97,44 +99,17 @@ time; every table row names its seed. The same sections are in [BENCHMARKS.md](B
   goodput at small N is well under the `paper` profile's.
 - Baseline comparison: our frame camera is kinder than the paper's (global shutter, no
   synchronisation jitter, our guessed exposure and noise), so QR codes succeed far more often here
-  than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code put its throughput
-  above ours at N = 16; the paper found the opposite. At the `standard` scale `robust` receives
-  95-97% of its data frames at every flow from 0.5 to 6 px/ms (its Reed-Solomon code and CRC pass),
-  as AprilTag and ArUco without blank frames decode 96-100% of their codes; the frames it misses are
-  the few shown before its first lock, 0.08-0.12 s into each clip. Read bit-exact before FEC, our
-  frames come out at 92-97% at every flow (6 px/ms: 92% for both profiles; `paper`'s frames carry no
-  check of their own and so count only bit-exact: a few points short of the tags there). The table's
-  last column says why. At every flow the receiver tracks 94-98% of the clip without a loss; the
-  reads it gets wrong have a few wrong bits, which `robust`'s FEC corrects and which stall the
-  `paper` profile (no frame header: one lost frame stops it until the transmitter loops round).
-  Until commit fc251ea a frame's bottom rows under fast motion were read from each pixel's first
-  burst since the frame's window opened, which was often a burst for a neighbouring row whose image
-  swept over it before its own row's switch: 80% (`robust`) and 78% (`paper`) of the 6 px/ms frames
-  read bit-exact, and the `paper` message completed only at 1.7 kbit/s there (6.6 now). Since commit
-  cfcda17 verifies a lock under motion on the frame after its burst's, the 0.5 px/ms `paper` clip
-  locks once at 0.08 s and keeps it (97% read; 90% before, when its first two locks read the 'L' no
-  better upright than turned and were dropped within 0.2 s). At the 6 px/ms clips' flow peak (9-12
-  px/ms) the pose can slide about 9 cm off the ring: in earlier runs one profile or the other lost
-  its lock there once; in this run neither did, nor tracked a pose more than 5 cm off. Until commit
-  e4f73ea the `paper` clip then locked again on a wrong pose and tracked it for over a second (28%
-  read, 55% of the clip more than 5 cm off): 13% too near, it fit the ring's two near sides and took
-  the screen's border (dark inside, bright outside, like the ring's inner edge) for the other two,
-  whose outer edges then lay on the wall and fired nothing. The tracker now drops a pose whose outer
-  edge stays silent for 30 updates while the motion sweeps it; that lock fails its verification and
-  the next one is right. (Dropped after 10 updates, `robust`'s slide became a loss and a 190 ms
-  relock: 68% read.) Until commit 3fb1327 the receiver's outputs depended on where the stream was
-  cut into chunks (it tried detection at each chunk's end and cut its triage segments from each
-  chunk's first event), so replays of saved events in 10 ms cuts diverged from the simulator's own
-  chunks; now any cutting gives the same outputs. Each clip is still one run in which a few events
-  decide where a detection locks: until commit 2506078 the simulator put about ten events per clip
-  out of order at chunk edges, and a replay of the 0.5 px/ms `paper` clip's events in 10 ms cuts,
-  which moves those few, locked right at once and lost nothing. Until commit f958734 a frame under
-  fast motion was read from each pixel's latest burst, which motion had often restarted after the
-  display's switch: a 10 ms replay of the `paper` clip read 33 of 59 frames (50 after; 36 and 55
-  through the true pose). Before commit b8d5afa the tracker's edges stood still between pose
-  updates, so the pose trailed the events by about 0.2 ms and at the flow peaks slid off the ring:
-  23-27% read at 6 px/ms, 73-79% of the clip tracked, five or six losses. Before ef463e9 detection
-  searched image flows only up to 2.5 px/ms: 13-15%.
+  than the paper's 40% (85% with blank frames), and QR v1-L's 136 bits per code can put its
+  throughput above ours at N = 16, where the paper found the opposite. The comparison table gives,
+  per system and flow, the share of codes or data frames received, and for ours the share read
+  bit-exact before FEC and why frames were missed: the first lock (the frames shown before it are
+  lost), tracking losses, and the share of the clip tracked (and tracked more than 5 cm off).
+  `robust`'s Reed-Solomon code corrects the few wrong bits of a misread frame; the `paper` profile
+  has no frame header and no check of its own, so its frames count only bit-exact and one lost
+  frame stalls its message until the transmitter loops round. How the receiver came to its
+  present numbers under fast motion (frames read from the wrong burst, edges standing still
+  between pose updates, a narrower flow search, wrong locks on the screen's border) is told in
+  the commits that changed it, each with the clips it was measured on.
 - The simulator has no motion-capture noise, calibration error or clock offset, so our ATE is
   below the paper's; it shows the tracker, not what a real set-up would measure.
 """
@@ -392,12 +367,17 @@ EXPERIMENTS = (
 )
 
 
-def write_results(path: Path, name: str, title: str, command: str, body: str) -> None:
-    """Refresh RESULTS.md's introduction and one experiment's section, keeping the others (so
-    one experiment can be rerun alone)."""
+def refresh_intro(path: Path) -> None:
+    """Write RESULTS.md's introduction, keeping its experiments' sections."""
     text = path.read_text() if path.exists() else ""
     first = text.find("<!-- bench:")
     path.write_text(RESULTS_INTRO + (text[first:] if first >= 0 else ""))
+
+
+def write_results(path: Path, name: str, title: str, command: str, body: str) -> None:
+    """Refresh RESULTS.md's introduction and one experiment's section, keeping the others (so
+    one experiment can be rerun alone)."""
+    refresh_intro(path)
     write_section(name, title, command, body, path=path)
 
 

@@ -16,11 +16,13 @@ stream. Each message is sized to ``Case.message_s`` seconds of raw symbols.
 
 Goodput is what a long message gets. Full-size clips cost minutes of simulation per second, so
 it is measured on the frames rather than on a message seconds long: for the framed profiles, the
-payload bits of the fountain symbols whose frames (shown after the lock) passed Reed-Solomon and
-the CRC, per second of stream since the lock (a long message needs only about two symbols more
-than its size); for ``paper``, which has no CRC, the message's bits over the time from the first
-event to the frame completing it. The first verified message shows that the symbols really make
-up the message; a delivered message whose sha256 does not match counts as a residual error.
+ceiling (every data frame's symbol passing) times the share of the data frames shown whole since
+the lock whose frames passed Reed-Solomon and the CRC (a long message needs only about two
+symbols more than its size); for ``paper``, which has no CRC, the message's bits over the time
+from the first event to the frame completing it. Every delivered message is compared with the
+bytes sent: the first that matches shows that the symbols really make up the message, and one
+that does not counts as a wrong message (for ``paper``, which sends no checksum, that is the
+only check).
 
 Each clip is simulated into memory first and then pushed chunk by chunk, as from a file, three
 times through a fresh receiver (``REPLAYS``; the outputs are the same each time, the timings are
@@ -65,9 +67,7 @@ JOIN_AT = 1000
 """Display refresh shown when the recording starts: the receiver joins mid-stream."""
 LINK_CELLS = 128
 """N of the ``robust`` and ``fast`` rows: the link format's largest, which the 1280x720 view
-still reads (3.3 px per cell, BER 2-3e-3 before FEC, 83-98 % of the frames through RS) and
-which alone puts ``robust`` at 60 Hz within reach of its target (N = 96 caps it at 204
-kbit/s)."""
+still reads (3.3 px per cell): the most bits per frame."""
 TARGET_BPS = {60.0: 300e3, 240.0: 1e6}
 """Verified goodput targets of ``robust`` and ``fast`` by refresh rate (none stated at 120 Hz)."""
 
@@ -175,7 +175,7 @@ def _replay(case: Case, scene: Scene, chunks: list[np.ndarray]) -> dict:
     log = DecodeLog(rx, FrameTruth(scene.encoder, case.refresh_hz, case.join_at))
     profile = get_profile(case.profile)
     codec = FrameCodec(profile, case.cells) if profile.framed else None
-    cpu, symbols = 0.0, 0
+    cpu, passed = 0.0, set()
     tracking_cpu, tracking_us, last_us = 0.0, 0, None
     for chunk in chunks:
         tracking = rx.state == TRACKING  # locked before this chunk: the steady state
@@ -188,41 +188,58 @@ def _replay(case: Case, scene: Scene, chunks: list[np.ndarray]) -> dict:
             tracking_us += int(chunk["t"][-1]) - last_us
         last_us = int(chunk["t"][-1])
         log.add(outputs)
-        if codec is not None and rx.stats.lock_times_us:
-            # The symbols that passed RS and the CRC (not timed), from the frames shown since the
-            # lock: the lock also reads the frames still buffered from before it.
-            lock_us = rx.stats.lock_times_us[0]
-            symbols += sum(
-                codec.decode(o.read.bits, o.read.confidence) is not None
-                for o in outputs
-                if isinstance(o, FrameOutput) and o.accepted and o.read.t_us >= lock_us
-            )
+        if codec is not None:  # the data refreshes whose frame passed RS and the CRC (not timed)
+            passed |= _passed_refreshes(log.truth, codec, outputs)
     log.add(rx.finish())
     report = log.report()
     report["cpu_total_s"] = cpu
     report["tracking_s"], report["tracking_cpu_s"] = tracking_us / 1e6, tracking_cpu
     report["message_bits"] = 8 * len(scene.encoder.message)
-    report["symbol_bits"] = symbols * 8 * codec.symbol_size if codec else None
+    report["passed_share"] = None
+    if codec is not None and rx.stats.lock_times_us:
+        # The data refreshes shown whole since the lock (the lock also reads the frames still
+        # buffered from before it, which do not count), and the share of them that passed.
+        shown = log.truth.data_refreshes(rx.stats.lock_times_us[0], rx.stats.last_event_us)
+        report["passed_share"] = len(passed.intersection(shown)) / len(shown) if shown else None
     return report
+
+
+def _passed_refreshes(truth: FrameTruth, codec: FrameCodec, outputs: list) -> set[int]:
+    """The data refreshes whose frames among ``outputs`` passed Reed-Solomon and the CRC."""
+    out = set()
+    for o in outputs:
+        if isinstance(o, FrameOutput) and o.accepted:
+            matched = truth.match(o.read.bits, o.read.t_us)
+            if matched is not None and codec.decode(o.read.bits, o.read.confidence) is not None:
+                out.add(matched[0])
+    return out
+
+
+def goodput_bps(case: Case, report: dict) -> float | None:
+    """``robust``/``fast``: the ceiling times the share of the data frames shown whole since
+    the lock that passed Reed-Solomon and the CRC (so never above the ceiling, however short
+    the clip). ``paper`` (no CRC): the bits of the first message that matches the one sent,
+    over the time from the first event to the frame completing it. None: nothing to count."""
+    if case.ceiling_bps is not None:
+        share = report["passed_share"]
+        return None if share is None else share * case.ceiling_bps
+    first = next((m["t_s"] for m in report["messages"] if m["matches_sent"]), None)
+    return None if first is None else report["message_bits"] / first
 
 
 def _row(case: Case, r: dict) -> str:
     ber = "n/a" if r["ber"] is None else f"{r['ber']:.2e}"
     lock = r["time_to_lock_s"]
-    verified = [m for m in r["messages"] if m["verified"]]
-    first = verified[0]["t_s"] if verified else None
+    right = [m for m in r["messages"] if m["matches_sent"]]  # against the bytes really sent
+    first = right[0]["t_s"] if right else None
     first_msg = "none" if first is None else f"{first:.3f}"
-    tracked_s = r["duration_s"] - (lock or r["duration_s"])
-    if r["symbol_bits"] is not None:
-        bps = r["symbol_bits"] / tracked_s if tracked_s > 0 else None
-    else:
-        bps = None if first is None else r["message_bits"] / first
+    bps = goodput_bps(case, r)
     goodput = "none" if bps is None else f"{bps / 1e3:.1f}"
     ceiling = "n/a" if case.ceiling_bps is None else f"{case.ceiling_bps / 1e3:.1f}"
-    wrong = len(r["messages"]) - len(verified)
+    wrong = len(r["messages"]) - len(right)
     target = "n/a"
     if case.target_bps is not None:
-        met = bps is not None and bps >= case.target_bps and verified and not wrong
+        met = bps is not None and bps >= case.target_bps and right and not wrong
         target = f"≥ {case.target_bps / 1e3:g}: {'met' if met else 'missed'}"
     cpu = r["cpu_s"]
     tracking_s = r["tracking_s"]
@@ -321,21 +338,22 @@ def main(argv: list[str] | None = None) -> None:
         f"`robust` and `fast` join the stream at refresh {JOIN_AT}, `paper` at its start; clips "
         f"of the length given, each pushed {REPLAYS} times through a fresh receiver, the "
         "timings from the run with the median CPU. Raw rate = N² bits per data frame. Goodput: "
-        "`robust`/`fast`, payload bits of the CRC-verified fountain symbols of the frames shown "
-        "since the lock, per second since the lock (what a long message gets; the frames "
-        "buffered before the lock are read too but not counted); `paper` (no CRC), the "
-        "message's bits over the "
-        "time to the frame completing it. Messages hold ~0.1 s of raw symbols; times are "
+        "`robust`/`fast`, the ceiling times the share of the data frames shown whole since the "
+        "lock whose frames passed Reed-Solomon and the CRC (what a long message gets; the "
+        "frames buffered before the lock are read too but not counted); `paper` (no CRC), the "
+        "bits of the first message matching the one sent over the time to the frame "
+        "completing it. Wrong messages: delivered messages that differ from the bytes sent "
+        "(`paper` sends no checksum, so only this comparison can catch a wrong Reed-Solomon "
+        "correction). Messages hold ~0.1 s of raw symbols; times are "
         "seconds from the first event. Real-time factor = seconds of events per CPU second of "
         "the receiver (one core); 'tracking RTF': the same over the chunks pushed while a lock "
         "held (their seconds in brackets), so without detection and the lock's re-reading of "
         "its buffered frames; 'other' in the CPU per stage is the glue between the stages.\n\n"
         f"`robust` and `fast` use N = {LINK_CELLS}, the link format's largest: the 1280x720 "
-        "view still reads it (3.3 px per cell) and it gives the best goodput at every rate: "
-        "the most bits per frame, while most frames still pass Reed-Solomon (goodput / "
-        "ceiling is that share); at N = 96 (4.4 px per cell) `robust` tops out at 204 kbit/s "
-        "at 60 Hz. Ceiling = the goodput if every data frame passed (symbol bits per frame, "
-        "less `fast`'s key refreshes). "
+        "view still reads it (3.3 px per cell) with the most bits per frame (goodput / "
+        "ceiling is the share of frames through Reed-Solomon and the CRC). Ceiling = the "
+        "goodput if every data frame passed (symbol bits per frame, less `fast`'s key "
+        "refreshes). "
         "Targets (the issue's, for a still camera): verified goodput >= 300 kbit/s at 60 Hz and "
         ">= 1 Mbit/s at 240 Hz (none stated at 120 Hz) with no wrong message delivered.\n\n"
         "| case | clip (s) | raw kbit/s | ceiling kbit/s | BER before FEC | goodput kbit/s | "

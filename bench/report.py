@@ -1,4 +1,10 @@
-"""Write one benchmark's section of docs/BENCHMARKS.md, leaving the other sections alone."""
+"""Write one benchmark's section of docs/BENCHMARKS.md, leaving the other sections alone.
+
+Each section's machine line ends with the commit the benchmark ran and whether the code was
+that commit's: ``commit abc1234 (clean)`` or ``commit abc1234 with uncommitted code changes``.
+The commit is read when this module is imported, at the benchmark's start, so edits made while
+a long benchmark runs do not change what its section claims (``bench.stale`` reads it back).
+"""
 
 from __future__ import annotations
 
@@ -8,12 +14,13 @@ import re
 import subprocess
 from pathlib import Path
 
-BENCHMARKS_MD = Path(__file__).resolve().parent.parent / "docs" / "BENCHMARKS.md"
+ROOT = Path(__file__).resolve().parent.parent
+BENCHMARKS_MD = ROOT / "docs" / "BENCHMARKS.md"
 HEADER = "# Benchmarks\n\nEvery section is written by the command it names; rerun it to refresh.\n"
 
 
-def _git(*args: str) -> str:
-    done = subprocess.run(["git", *args], capture_output=True, text=True, check=False)
+def _git(*args: str, cwd: Path = ROOT) -> str:
+    done = subprocess.run(["git", *args], capture_output=True, text=True, check=False, cwd=cwd)
     return done.stdout.strip()
 
 
@@ -21,7 +28,7 @@ def machine() -> str:
     """One line describing this machine, for every section."""
     return (
         f"{_cpu()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-        f"{platform.system()} {platform.release()}" + _revision()
+        f"{platform.system()} {platform.release()}" + REVISION
     )
 
 
@@ -48,11 +55,17 @@ def _cpu() -> str:
 def _revision() -> str:
     try:
         rev = _git("rev-parse", "--short", "HEAD")
-        if rev and _git("status", "--porcelain", "--", "*.py"):
-            rev += " with uncommitted code changes"  # the numbers are not that commit's
+        if not rev:
+            return ""
+        dirty = _git("status", "--porcelain", "--", "*.py")
     except OSError:
         return ""
-    return f", commit {rev}" if rev else ""
+    # Uncommitted code: the numbers are not that commit's.
+    return f", commit {rev}" + (" with uncommitted code changes" if dirty else " (clean)")
+
+
+REVISION = _revision()
+"""The code this process runs: read once, at the benchmark's start."""
 
 
 def write_section(

@@ -86,8 +86,9 @@ CASES = {
 
 def main() -> None:
     rows = [
-        "| scene | px/cell | sim s / wall s | sim s / CPU s | events/s (simulated) | peak RSS MB |",
-        "|---|---|---|---|---|---|",
+        "| scene | px/cell | sim s / wall s | sim s / CPU s | events/s (simulated) | "
+        "CPU ns per event | ns per event at 0.5x | peak RSS MB |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, make in CASES.items():
         scene = make()
@@ -99,9 +100,11 @@ def main() -> None:
             walls.append(time.perf_counter() - start)
             cpus.append(time.process_time() - cpu)
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        rate = count / DURATION_S
         rows.append(
             f"| {name} | {scene.cell_px():.1f} | {DURATION_S / np.median(walls):.3f} | "
-            f"{DURATION_S / np.median(cpus):.3f} | {count / DURATION_S:,.0f} | {rss:.0f} |"
+            f"{DURATION_S / np.median(cpus):.3f} | {rate:,.0f} | "
+            f"{np.median(cpus) / count * 1e9:.0f} | {1e9 / (0.5 * rate):.0f} | {rss:.0f} |"
         )
         print(rows[-1], flush=True)
     write_section(
@@ -113,12 +116,9 @@ def main() -> None:
         "display, 250 lux. The paper rows use the paper link profile and the gen4-indoor "
         "sensor; the demo rows are what the live demo's virtual camera simulates (robust "
         "profile, its coarse-threshold sensor). The machine is shared, so CPU time is given "
-        "next to wall time; its speed also drifts between days by up to 2x (the first row "
-        "measured 1.63 and 1.0 on two days with the same code), so compare rows of one run. "
-        "0.5x real time on one core for the 1280x720 hand-held row would leave 30 ns per event "
-        "for everything (it makes 67 M events per simulated second), while turning rendered "
-        "crossings into sorted, delayed events alone costs about 21 ns per event and the "
-        "cheapest rendering, a still camera's closed form, about 45.\n\n" + "\n".join(rows),
+        "next to wall time, and its speed drifts between days: compare rows of one run. "
+        "'ns per event at 0.5x': the CPU time per event that simulating at half real time on "
+        "one core would leave, against the 'CPU ns per event' it takes.\n\n" + "\n".join(rows),
     )
 
 

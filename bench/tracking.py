@@ -22,7 +22,7 @@ from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.pipeline.config import ReceiverConfig, TrackerParams
 from eventocc.receiver.pipeline.metrics import held_s, pose_errors
 from eventocc.receiver.pipeline.receiver import Receiver
-from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.report import FrameTruth, decode_events
 from eventocc.receiver.sim import Display, HandHeldMotion, Scene, SensorModel, simulate
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
@@ -66,12 +66,9 @@ def hand_held_config() -> ReceiverConfig:
 
 def run_one(flow_px_per_ms: float, seed: int, duration_s: float) -> dict:
     scene = hand_held_scene(flow_px_per_ms, seed)
-    rx = Receiver(hand_held_config())
-    log = DecodeLog(rx, FrameTruth(scene.encoder, 60.0))
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
-    for chunk in rec:
-        log.add(rx.push(chunk))
-    log.add(rx.finish())
+    rx = Receiver(hand_held_config())
+    log = decode_events(rx, rec, FrameTruth(scene.encoder, 60.0))
     row = {
         "flow": flow_px_per_ms,
         "seed": seed,
@@ -191,22 +188,8 @@ def write_report(rows: list[dict], flows: list[float], duration: float, command:
         "detection under motion is also dropped if none of its first "
         f"{config.decoder.probation_frames} frames passes its CRC. "
         "'never' under first lock: no lock during the clip (ATE etc. then have nothing to "
-        "score). Without the polarities the capture often settled on the black ring around the "
-        "white one: a pose a ring width too near that read the white ring as the 'L' a quarter "
-        "turn off and passed every other check (issue 4; at 1 px/ms such locks were tracked for "
-        "up to 0.4 s per path, and the first right lock took up to 2.2 s). At 0.25 px/ms, "
-        "until commit 4a4539c relocks after a loss came half a turn off now and then (seeds 1 "
-        "and 4, 21-22 cm off for 190 and 40 ms: ATE 1.51 and 1.60 cm); until ae6e6b6 the capture "
-        "settled a ring width off and hid the 'L' (first locks 81-288 ms, median 151); until "
-        "9d1e5dd the fit ratio was judged while the camera nearly stood still, and dropped 2-7 "
-        "right poses per path. Until commit 87e035a the still path also locked on the smeared "
-        "image of a camera drifting too slowly for the burst to give a flow (seeds 3 and 4, 10 "
-        "and 21 cm off); until 8c289ef (the last-resort slow square) seed 4 locked at 248 ms, "
-        "after nine attempts whose flow search lined the display's own OFF events up at 1-2 px/ms "
-        "or found no flow; until 6ab83a7 (the burst before) seed 4 at 1 px/ms locked at 123 ms, "
-        "its first attempt's burst smeared by a turn about the camera's axis; until 199d71c "
-        "(the densest burst window) seed 1 at 1 px/ms locked at 153 ms, the map's phase having "
-        "put its first bursts' windows a millisecond or two off."
+        "score). How earlier commits fared on these paths is told in the commits that changed "
+        "the detector."
         "\n\n" + "\n".join(lines)
     )
     summary = [

@@ -86,6 +86,13 @@ class ReedSolomon:
         ``2 errors + erasures <= n - k - margin``, so a word far from every codeword is far less
         often "corrected" into the wrong one. Returns the (m, k) data and an (m,) bool mask of
         codewords that decoded; the data of the others is left as received."""
+        corrected, ok = self.correct(codewords, erasures, margin)
+        return corrected[:, : self.k], ok
+
+    def correct(
+        self, codewords: np.ndarray, erasures: np.ndarray | None = None, margin: int = 0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``decode``, returning the whole (m, n) corrected codewords, parity included."""
         codewords = np.array(codewords, dtype=np.uint8).reshape(-1, self.n)
         if erasures is None:
             erasures = np.zeros(codewords.shape, dtype=bool)
@@ -95,7 +102,7 @@ class ReedSolomon:
             from eventocc.occ.rs_kernel import correct_rows
 
             ok |= correct_rows(codewords, erasures, ~ok, self.nsym, self.nsym - margin)
-        return codewords[:, : self.k], ok
+        return codewords, ok
 
 
 # The paper's footnote: the RS code chosen for each payload side N.

@@ -59,6 +59,9 @@ class FrameCodec:
         self.frame_bytes = frame_bytes
         sealed = OVERHEAD + self.symbol_size
         self._crc = slice(sealed - FrameHeader.CRC_SIZE, sealed)
+        self.corrected: np.ndarray | None = None
+        """(cells, cells) bool: the cells whose bits the last ``decode`` corrected; None if
+        it returned None."""
 
     def _keyed(self, key: bytes) -> np.ndarray:
         """The keyed whitening of a frame's data bytes, then of its left-over bytes; zero on the
@@ -82,58 +85,68 @@ class FrameCodec:
     def decode(
         self, bits: np.ndarray, confidence: np.ndarray | None = None
     ) -> tuple[FrameHeader, bytes] | None:
-        """Header and symbol of a frame read from the cells, or None if it cannot be trusted.
+        """Header and symbol of a frame read from the cells, or None if it cannot be trusted;
+        ``self.corrected`` then marks the cells the code corrected (None if it failed).
 
         With ``confidence``, bytes with a cell below ``profile.erasure_below`` are erasures;
         a codeword that still fails is decoded again with more of its least confident bytes
         erased (``profile.erasure_rounds``): generalised minimum-distance decoding, which an
         erasure pays for when at least one in three of the erased bytes was wrong."""
-        coded = deinterleave(
-            cells_to_bytes(np.asarray(bits, dtype=np.uint8) ^ self.mask, self.coded_bytes),
-            self.codewords,
-        )
+        self.corrected = None
+        received = cells_to_bytes(np.asarray(bits, dtype=np.uint8) ^ self.mask, self.coded_bytes)
+        coded = deinterleave(received, self.codewords)
         erasures = None
         if confidence is not None:
             sureness = deinterleave(byte_min(confidence, self.coded_bytes), self.codewords)
             erasures = sureness < self.profile.erasure_below
-        data, ok = self.rs.decode(coded, erasures)
+        codewords, ok = self.rs.correct(coded, erasures)
         if not ok.all() and confidence is not None:
-            data, ok = self._erase_least_sure(coded, sureness, erasures, data, ok)
+            codewords, ok = self._erase_least_sure(coded, sureness, erasures, codewords, ok)
         if not ok.all():
             return None
-        data = data.reshape(-1)
+        data = codewords[:, : self.rs.k].reshape(-1)
         data = data ^ self._keyed(data[self._crc].tobytes())[: data.size]
         try:
-            return unseal(data[: self._crc.stop].tobytes())
+            frame = unseal(data[: self._crc.stop].tobytes())
         except FramingError:
             return None
+        self.corrected = self._corrected_cells(received, interleave(codewords))
+        return frame
+
+    def _corrected_cells(self, received: np.ndarray, corrected: np.ndarray) -> np.ndarray:
+        """(cells, cells) bool: the cells of the coded bytes whose bit the code changed (the
+        left-over cells carry no code: never corrected)."""
+        flips = np.zeros(self.frame_bytes, dtype=np.uint8)
+        flips[: self.coded_bytes] = received ^ corrected
+        return bytes_to_cells(flips, self.cells).astype(bool)
 
     def _erase_least_sure(
         self,
         coded: np.ndarray,
         sureness: np.ndarray,
         erasures: np.ndarray,
-        data: np.ndarray,
+        codewords: np.ndarray,
         ok: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Retry the failed codewords with the ``k`` least sure bytes of each erased, for
-        ``k`` in even steps up to ``nsym - 2 * ERASURE_MARGIN``; each retry keeps
-        ``ERASURE_MARGIN`` parity bytes back for detection (``ReedSolomon.decode``), so a
+        ``k`` in even steps up to ``nsym - 2 * ERASURE_MARGIN``, giving whole corrected
+        codewords as ``ReedSolomon.correct`` does; each retry keeps
+        ``ERASURE_MARGIN`` parity bytes back for detection (``ReedSolomon.correct``), so a
         word the erasures push next to the wrong codeword is refused rather than "corrected"."""
         rounds = self.profile.erasure_rounds
         most = self.rs.nsym - 2 * ERASURE_MARGIN
         if rounds < 1 or most < 1:
-            return data, ok
+            return codewords, ok
         order = np.argsort(sureness, axis=1, kind="stable")
         rank = np.empty_like(order)
         np.put_along_axis(rank, order, np.arange(order.shape[1])[None, :], axis=1)
-        data, ok = data.copy(), ok.copy()
+        codewords, ok = codewords.copy(), ok.copy()
         for r in range(1, rounds + 1):
             failed = np.flatnonzero(~ok)
             if not len(failed):
                 break
             erase = erasures[failed] | (rank[failed] < round(most * r / rounds))
-            got, fixed = self.rs.decode(coded[failed], erase, margin=ERASURE_MARGIN)
-            data[failed[fixed]] = got[fixed]
+            got, fixed = self.rs.correct(coded[failed], erase, margin=ERASURE_MARGIN)
+            codewords[failed[fixed]] = got[fixed]
             ok[failed[fixed]] = True
-        return data, ok
+        return codewords, ok

@@ -12,10 +12,16 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+
+from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
 
 PROFILE_NAMES = ("paper", "robust", "fast")
 DEFAULT_PROFILE = "robust"
+MIN_REFRESH_HZ, MAX_REFRESH_HZ = 1.0, 1000.0
+"""The display refresh rates a link may run at: what the receiver and the simulator are built
+for."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +51,13 @@ class LinkProfile:
     """``fast``: every ``key_every``-th refresh resets the differential state to a fixed key
     pattern (it carries no symbol), so frame k costs at most ``key_every`` symbol encodings."""
 
+    @property
+    def data_share(self) -> float:
+        """Share of display refreshes that carry a data frame (blank and key refreshes carry
+        none): the same for every message, however its last key group falls."""
+        share = 1 / self.data_every
+        return share * (1 - 1 / self.key_every) if self.key_every else share
+
 
 PROFILES = {
     "paper": LinkProfile("paper", data_every=2, framed=False, parity_fraction=0.0),
@@ -54,18 +67,19 @@ PROFILES = {
 
 
 def get_profile(name: str) -> LinkProfile:
-    try:
-        return PROFILES[name]
-    except KeyError:
+    if not isinstance(name, str) or name not in PROFILES:
         raise ValueError(
             f"unknown link profile {name!r}; valid profiles: {', '.join(PROFILE_NAMES)}"
-        ) from None
+        )
+    return PROFILES[name]
 
 
 @dataclass(frozen=True)
 class LinkSettings:
     """What the receiver pipeline must be told about the screen: its link profile, cells and
-    refresh rate."""
+    refresh rate. Only settings a receiver can be built for exist: any others raise
+    ``ValueError`` saying what is wrong, whoever sent them (the settings come over the network
+    from whatever says what the screen shows)."""
 
     profile: str
     cells: int
@@ -74,4 +88,25 @@ class LinkSettings:
     absorbs (it re-times every frame from its own burst) and must not rebuild for."""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "refresh_hz", float(round(self.refresh_hz)))
+        get_profile(self.profile)  # raises with the list of valid names
+        cells, hz = self.cells, self.refresh_hz
+        if not _is_number(cells, int) or not MIN_CELLS <= cells <= MAX_CELLS:
+            raise ValueError(
+                f"cells must be a whole number {MIN_CELLS}..{MAX_CELLS}, got {cells!r}"
+            )
+        if (
+            not _is_number(hz, (int, float))
+            or not math.isfinite(hz)
+            or not MIN_REFRESH_HZ <= round(hz) <= MAX_REFRESH_HZ
+        ):
+            raise ValueError(
+                f"refresh rate must be {MIN_REFRESH_HZ:g}..{MAX_REFRESH_HZ:g} Hz, got {hz!r}"
+            )
+        object.__setattr__(self, "refresh_hz", float(round(hz)))
+
+    def __str__(self) -> str:
+        return f"{self.profile} with {self.cells} cells at {self.refresh_hz:g} Hz"
+
+
+def _is_number(value: object, kind: type | tuple[type, ...]) -> bool:
+    return isinstance(value, kind) and not isinstance(value, bool)

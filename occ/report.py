@@ -18,8 +18,14 @@ from eventocc.occ.stream import ReceivedMessage
 
 PROTOCOL_VERSION = 1
 
+INT64_MAX = 2**63 - 1
+"""Integers are 64-bit signed, as the server stores them (SQLite) and event times are."""
+
+MAX_WAITING = 300
+"""Characters of a health report's ``waiting``: a reason, not a log."""
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]
-Count = Annotated[int, Field(ge=0)]
+Count = Annotated[int, Field(ge=0, le=INT64_MAX)]
+Micros = Annotated[int, Field(ge=-INT64_MAX - 1, le=INT64_MAX)]
 
 
 class _Model(BaseModel):
@@ -38,23 +44,40 @@ class TrackingState(StrEnum):
 class Hello(_Model):
     type: Literal["hello"] = "hello"
     receiver_id: str = Field(min_length=1, max_length=128)
+    """The receiver's own secret name (the daemon draws 16 random hex digits once per output
+    folder): presenting it again is what makes a reconnecting receiver the same one, so the
+    server never shows it; it shows ``public_id``."""
     token: str | None = None
     version: int = PROTOCOL_VERSION
+
+    @property
+    def public_id(self) -> str:
+        return public_receiver_id(self.receiver_id)
+
+
+def public_receiver_id(receiver_id: str) -> str:
+    """The name the server shows for the receiver that says ``receiver_id`` in its Hello: a
+    digest, so that seeing it does not let anyone speak as that receiver."""
+    return hashlib.sha256(f"eventocc receiver {receiver_id}".encode()).hexdigest()[:16]
 
 
 class PoseReport(_Model):
     """``T_world_cam``: the camera's pose in the marker frame (metres)."""
 
     type: Literal["pose"] = "pose"
-    t_us: int
+    t_us: Micros
     position: tuple[float, float, float]
     quaternion_xyzw: tuple[float, float, float, float]
     state: TrackingState
+    verified: bool = False
+    """A frame had proven the lock (CRC passed; ``paper``: its 'L' read clearly) when the pose
+    came out; False: tentative (a wrong lock can look right to every other check). Receivers
+    before this field sent none: their poses count as tentative."""
 
 
 class FrameStats(_Model):
     type: Literal["frame"] = "frame"
-    t_us: int
+    t_us: Micros
     frame_index: Count
     bits_read: Count
     confidence_mean: Unit
@@ -66,16 +89,29 @@ class FrameStats(_Model):
     which carry no check."""
 
 
+_SHA256 = r"^[0-9a-f]{64}$"
+
+
 class MessageReport(_Model):
-    """A verified message; ``data_b64`` is checked against ``size`` and ``sha256`` on parsing."""
+    """A message received in full; ``data_b64`` is checked against ``size`` and ``sha256`` (the
+    receiver's digest of the bytes) on parsing, and against ``sender_sha256`` when there is one.
+    """
 
     type: Literal["message"] = "message"
     stream_id: Count
     name: str
     size: Count
-    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    sha256: str = Field(pattern=_SHA256)
     data_b64: str
     profile: str
+    sender_sha256: str | None = Field(default=None, pattern=_SHA256)
+    """The digest the sender sent in-band (framed profiles). None: nothing checked the bytes
+    (``paper`` sends no checksum; receivers before this field sent none either)."""
+
+    @property
+    def verified(self) -> bool:
+        """The bytes hash to what the sender sent (the parser refuses a mismatch)."""
+        return self.sender_sha256 is not None
 
     @model_validator(mode="after")
     def _data_matches(self) -> Self:
@@ -87,6 +123,8 @@ class MessageReport(_Model):
             raise ValueError(f"data_b64 holds {len(data)} bytes but size says {self.size}")
         if hashlib.sha256(data).hexdigest() != self.sha256:
             raise ValueError("data_b64 does not match sha256")
+        if self.sender_sha256 not in (None, self.sha256):
+            raise ValueError("data_b64 does not match the sender's sha256 (sender_sha256)")
         return self
 
     @property
@@ -102,6 +140,7 @@ class MessageReport(_Model):
             sha256=message.sha256,
             data_b64=base64.b64encode(message.data).decode(),
             profile=message.profile,
+            sender_sha256=message.sender_sha256,
         )
 
 
@@ -142,6 +181,14 @@ class HealthReport(_Model):
     below 1 it skips ahead to stay live."""
     camera: CameraReport | None = None
     """A live camera's own readings and link losses (absent for other sources)."""
+    px_per_cell: Annotated[float, Field(ge=0.0)] | None = None
+    """A cell's side in pixels as the camera sees it: at the tracked pose, or while not locked
+    estimated from the latest blinking region detection found (None: nothing seen yet)."""
+    detection_failure: str | None = Field(default=None, max_length=500)
+    """Why the latest detection attempt failed, while not locked."""
+    waiting: Annotated[str, Field(max_length=MAX_WAITING)] | None = None
+    """Why the source gives no events now (the virtual camera: the transmitter page is paused
+    or closed); ``state`` is then idle."""
 
 
 class SurfaceReport(_Model):
@@ -149,7 +196,7 @@ class SurfaceReport(_Model):
     row-major, base64 (255 = an event just now, fading to 0)."""
 
     type: Literal["surface"] = "surface"
-    t_us: int
+    t_us: Micros
     width: Annotated[int, Field(ge=1, le=256)]
     height: Annotated[int, Field(ge=1, le=256)]
     pixels_b64: str
@@ -165,8 +212,43 @@ class SurfaceReport(_Model):
         return self
 
 
+class CellsReport(_Model):
+    """The cells one data frame read, for the dashboard: the ``cells x cells`` bits, row-major,
+    packed (``numpy.packbits``) and base64; for a frame whose Reed-Solomon decoding succeeded,
+    the cells whose bits it corrected, packed the same way."""
+
+    type: Literal["cells"] = "cells"
+    t_us: Micros
+    frame_index: Count
+    cells: Annotated[int, Field(ge=1, le=256)]
+    bits_b64: str
+    corrected_b64: str | None = None
+    """None: the frame did not decode (too many errors, or ``paper``: no per-frame code)."""
+
+    @model_validator(mode="after")
+    def _sizes_match(self) -> Self:
+        packed = -(-self.cells * self.cells // 8)
+        for name in ("bits_b64", "corrected_b64"):
+            text = getattr(self, name)
+            if text is None:
+                continue
+            try:
+                size = len(base64.b64decode(text, validate=True))
+            except binascii.Error as exc:
+                raise ValueError(f"{name} is not valid base64: {exc}") from None
+            if size != packed:
+                raise ValueError(f"{name} holds {size} bytes, not {packed} ({self.cells}^2 bits)")
+        return self
+
+
 Report = Annotated[
-    PoseReport | FrameStats | MessageReport | ProgressReport | HealthReport | SurfaceReport,
+    PoseReport
+    | FrameStats
+    | MessageReport
+    | ProgressReport
+    | HealthReport
+    | SurfaceReport
+    | CellsReport,
     Field(discriminator="type"),
 ]
 _REPORT = TypeAdapter(Report)

@@ -18,9 +18,10 @@ Refresh timeline (60 Hz display):
 
 ``StreamDecoder.push`` takes the bits read from one data frame (for ``fast``: the toggle bits
 ``b_k``) and returns the messages completed by it. Framed profiles accept frames lost, repeated,
-reordered or from any starting point, and never return bytes whose sha256 does not match.
-The ``paper`` profile has no header: its decoder needs ``message_size`` and in-order frames
-(see ``eventocc.occ.paper_codec``).
+reordered or from any starting point, and never return bytes whose sha256 does not match the
+one the sender sent in-band (``ReceivedMessage.verified``). The ``paper`` profile has no header
+and no checksum: its decoder needs ``message_size`` and in-order frames (see
+``eventocc.occ.paper_codec``), and what it returns is unchecked.
 
 An empty message is valid: ``paper`` sends one all-black data frame, the framed profiles a
 fountain object holding only the name, size and checksum.
@@ -53,9 +54,19 @@ class ReceivedMessage:
     name: str
     data: bytes
     sha256: str
-    """Hex digest of ``data``."""
+    """Hex digest of ``data``, computed by the receiver: it identifies the bytes, it checks
+    nothing."""
     stream_id: int
     profile: str
+    sender_sha256: str | None = None
+    """Hex digest the sender sent in-band with the message (the fountain object's metadata of
+    the framed profiles); None where the sender sent none (``paper``)."""
+
+    @property
+    def verified(self) -> bool:
+        """Whether the bytes hash to what the sender sent: False for ``paper``, whose message
+        carries no checksum (a wrong Reed-Solomon correction passes unnoticed)."""
+        return self.sender_sha256 is not None and self.sender_sha256 == self.sha256
 
 
 def _check_index(k: int) -> None:
@@ -196,7 +207,8 @@ class StreamEncoder:
 
 
 class StreamDecoder:
-    """Feed it the bits of data frames; it returns each message once, verified.
+    """Feed it the bits of data frames; it returns each message once (verified against the
+    sender's sha256 for the framed profiles, unchecked for ``paper``).
 
     Framed profiles need nothing but ``profile`` and ``cells``; several streams may be in flight
     at once, told apart by their stream id. ``paper`` frames carry no header, so its decoder
@@ -247,10 +259,13 @@ class StreamDecoder:
             return self._push_framed(bits, confidence)
         return self._push_paper(bits, confidence)
 
-    def _received(self, name: str, data: bytes, stream_id: int) -> list[ReceivedMessage]:
+    def _received(
+        self, name: str, data: bytes, stream_id: int, sender_sha256: bytes | None
+    ) -> list[ReceivedMessage]:
         self._delivered.add(stream_id)
         digest = hashlib.sha256(data).hexdigest()
-        return [ReceivedMessage(name, data, digest, stream_id, self.profile.name)]
+        sent = None if sender_sha256 is None else sender_sha256.hex()
+        return [ReceivedMessage(name, data, digest, stream_id, self.profile.name, sent)]
 
     def _push_paper(self, bits: np.ndarray, confidence: np.ndarray | None) -> list[ReceivedMessage]:
         paper = self._paper
@@ -259,7 +274,7 @@ class StreamDecoder:
         paper.push(bits, confidence)
         if not (paper.complete and paper.pushed):
             return []
-        return self._received(self.name, bytes(paper.data), 0)
+        return self._received(self.name, bytes(paper.data), 0, None)
 
     def _push_framed(
         self, bits: np.ndarray, confidence: np.ndarray | None
@@ -281,7 +296,13 @@ class StreamDecoder:
             return []
         del self._streams[header.stream_id]
         meta, data = done
-        return self._received(meta.name, data, header.stream_id)
+        return self._received(meta.name, data, header.stream_id, meta.sha256)
+
+    @property
+    def corrected(self) -> np.ndarray | None:
+        """(cells, cells) bool: the cells whose bits the last pushed frame's Reed-Solomon code
+        corrected; None if it did not decode, and for ``paper`` (no code per frame)."""
+        return self._codec.corrected if self.profile.framed else None
 
     def progress(self) -> dict[int, dict]:
         """Per stream in flight: stream_id, symbols_held, symbols_needed, name, size (name and

@@ -16,7 +16,10 @@ from fastapi_offline import FastAPIOffline
 from eventocc import __version__
 from eventocc.server.api import api_router
 from eventocc.server.api.encoding import EncoderCache
+from eventocc.server.api.errors import add_error_handlers
+from eventocc.server.api.origins import OriginCheck
 from eventocc.server.api.state import LiveState
+from eventocc.server.api.uploads import UploadBudget
 from eventocc.server.hub import Hub
 from eventocc.server.receptions import ReceptionStore
 from eventocc.server.settings import Settings
@@ -53,7 +56,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.store = MessageStore(settings.db_path)
     app.state.encoders = EncoderCache(app.state.store, settings.encoder_cache_size)
+    app.state.upload_budget = UploadBudget(settings.upload_budget)
     app.include_router(api_router)
+    add_error_handlers(app)
+    app.add_middleware(OriginCheck, allowed=settings.allowed_origins)
     _add_pages(app, WEB_DIR)
     return app
 
@@ -78,6 +84,13 @@ def _add_pages(app: FastAPI, web_dir: Path) -> None:
         '<li><a href="/docs">API</a></li></ul></main></body></html>'
     )
     app.add_api_route("/", lambda: HTMLResponse(index), include_in_schema=False)
+    # Browsers ask every page's site for /favicon.ico: an icon, not a 404 in the log.
+    icon = web_dir / "favicon.svg"
+    app.add_api_route(
+        "/favicon.ico",
+        lambda: FileResponse(icon, media_type="image/svg+xml"),
+        include_in_schema=False,
+    )
 
 
 def _serve_file(path: Path) -> Callable[[], FileResponse]:

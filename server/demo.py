@@ -34,7 +34,11 @@ SAMPLE_SHA256 = hashlib.sha256(SAMPLE_TEXT.encode()).hexdigest()
 
 
 def port_is_free(host: str, port: int) -> bool:
+    """Whether the server could listen on ``port``: bound as uvicorn binds it, with
+    ``SO_REUSEADDR``, so that a demo restarted within a minute, its last connections still in
+    TIME_WAIT, gets its port back."""
     with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((host, port))
         except OSError:
@@ -87,14 +91,16 @@ def upload_sample(base_url: str, settings: Settings) -> dict:
 
 
 def start_receiver(
-    base_url: str, settings: Settings, motion: str | None = None
+    base_url: str, settings: Settings, message_id: str, motion: str | None = None
 ) -> subprocess.Popen:
     """The receiver daemon on the virtual event camera, in its own process: the server never
-    imports the receiver, they meet over HTTP and websockets only."""
+    imports the receiver, they meet over HTTP and websockets only. Until a transmitter page
+    reports, the camera watches ``message_id``, whatever else was uploaded since."""
     env = {**os.environ, "NUMBA_NUM_THREADS": "1"}
     if settings.token is not None:
         env["EVENTOCC_TOKEN"] = settings.token.get_secret_value()
-    command = [sys.executable, "-m", "eventocc.receiver.cli", "receive", "--source", "sim:"]
+    command = [sys.executable, "-m", "eventocc.receiver.cli", "receive"]
+    command += ["--source", f"sim:{message_id}"]
     command += ["--server", base_url, "--out", str(settings.data_dir / "receiver")]
     if motion is not None:
         command += ["--motion", motion]
@@ -124,7 +130,7 @@ def main(argv: list[str] | None = None) -> None:
     # ignoring it, so ``kill -INT`` would do nothing.
     for stop_signal in (signal.SIGINT, signal.SIGTERM):
         signal.signal(stop_signal, signal.default_int_handler)
-    receiver = start_receiver(base_url, settings, args.motion)
+    receiver = start_receiver(base_url, settings, message["id"], args.motion)
     try:
         print(f"eventocc server on {base_url}  (API docs: {base_url}/docs)")
         print(f"transmitter: {base_url}/transmitter?id={message['id']}")

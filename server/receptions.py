@@ -1,17 +1,20 @@
 """What receivers sent us, kept in SQLite beside the message store (same file, own tables).
 
 A *reception* is one message a receiver decoded in full: its bytes, their sha256 (computed
-again here: bytes that do not match the digest the receiver claims are refused), and the
-uploaded message with the same digest, if any. Poses are kept at the rate the receiver
-publishes them (decimated for the UI), so a trajectory survives a server restart. Each
-receiver numbers its reports; the server remembers the highest number it has stored per
-receiver, so a report replayed from the receiver's spool after a reconnect is acknowledged
-again but stored once.
+again here: bytes that do not match the digest the receiver claims are refused), whether they
+hash to the digest their sender sent in-band, and the uploaded message with the same digest, if
+any. Poses are kept at the rate the receiver publishes them (decimated for the UI), so a
+trajectory survives a server restart, each with whether a frame had proven the receiver's lock
+(verified) or not yet (tentative). Each receiver numbers its reports; the server remembers
+the highest number it has stored per receiver, so a report replayed from the receiver's spool
+after a reconnect is acknowledged again but stored once. Receivers are kept under their public id
+(``eventocc.occ.report.public_receiver_id``), never under the secret one they connect with.
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 import secrets
 import sqlite3
 import threading
@@ -20,6 +23,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+
+from eventocc.occ.report import public_receiver_id
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS receivers (
@@ -39,19 +44,39 @@ CREATE TABLE IF NOT EXISTS receptions (
     message_id TEXT,
     received   TEXT NOT NULL,
     data       BLOB NOT NULL,
+    verified   INTEGER,
     UNIQUE (receiver, seq)
 );
 CREATE TABLE IF NOT EXISTS receiver_poses (
     receiver TEXT NOT NULL REFERENCES receivers(id),
     t_us     INTEGER NOT NULL,
     tx REAL, ty REAL, tz REAL, qx REAL, qy REAL, qz REAL, qw REAL,
+    verified INTEGER,
     PRIMARY KEY (receiver, t_us)
 ) WITHOUT ROWID;
 """
-COLUMNS = "id, receiver, seq, name, sha256, size, goodput_bps, message_id, received"
+SCHEMA_VERSION = 1
+"""``PRAGMA user_version``: 0 kept receivers under the secret id they connect with, 1 under
+their public id."""
+RECEIVER_COLUMNS = (("receivers", "id"), ("receptions", "receiver"), ("receiver_poses", "receiver"))
+COLUMNS = "id, receiver, seq, name, sha256, size, goodput_bps, message_id, received, verified"
 
 PoseRow = tuple[int, float, float, float, float, float, float, float]
 """``(t_us, tx, ty, tz, qx, qy, qz, qw)``: a TUM row with the time in microseconds."""
+
+
+def _finite(value: float | None) -> bool:
+    return value is not None and math.isfinite(value)
+
+
+def _keep_public_ids(db: sqlite3.Connection) -> None:
+    """Rename every receiver kept under its secret id to its public id."""
+    for (secret,) in db.execute("SELECT id FROM receivers").fetchall():
+        for table, column in RECEIVER_COLUMNS:
+            db.execute(
+                f"UPDATE {table} SET {column} = ? WHERE {column} = ?",
+                (public_receiver_id(secret), secret),
+            )
 
 
 def _mark(db: sqlite3.Connection, receiver: str, seq: int) -> None:
@@ -76,6 +101,9 @@ class Reception:
     message_id: str | None
     """The uploaded message with the same sha256, if any."""
     received: datetime
+    verified: bool | None = None
+    """The bytes hash to the sha256 their sender sent in-band; False: nothing checked them
+    (``paper`` sends no checksum); None: stored before this was recorded."""
 
     @classmethod
     def from_row(cls, row: sqlite3.Row) -> Reception:
@@ -83,6 +111,7 @@ class Reception:
             **{
                 **dict(row),
                 "received": datetime.fromisoformat(row["received"]),
+                "verified": None if row["verified"] is None else bool(row["verified"]),
             }
         )
 
@@ -106,6 +135,15 @@ class ReceptionStore:
         self._db.execute("PRAGMA synchronous=NORMAL")
         with self._transaction() as db:
             db.executescript(SCHEMA)
+            columns = {r["name"] for r in db.execute("PRAGMA table_info(receptions)")}
+            if "verified" not in columns:  # a database from before the column
+                db.execute("ALTER TABLE receptions ADD COLUMN verified INTEGER")
+            columns = {r["name"] for r in db.execute("PRAGMA table_info(receiver_poses)")}
+            if "verified" not in columns:  # its poses' flag stays NULL: not known, not verified
+                db.execute("ALTER TABLE receiver_poses ADD COLUMN verified INTEGER")
+            if db.execute("PRAGMA user_version").fetchone()[0] < 1:
+                _keep_public_ids(db)
+            db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
 
     def close(self) -> None:
         with self._lock:
@@ -144,6 +182,7 @@ class ReceptionStore:
         claimed_sha256: str,
         goodput_bps: float | None,
         message_id: str | None,
+        verified: bool = False,
     ) -> Reception:
         """Store a finished message; a replay of the same (receiver, seq) returns the first.
 
@@ -162,11 +201,12 @@ class ReceptionStore:
             goodput_bps=goodput_bps,
             message_id=message_id,
             received=datetime.now(UTC),
+            verified=verified,
         )
         with self._transaction() as db:
             db.execute(
                 f"INSERT OR IGNORE INTO receptions ({COLUMNS}, data) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     reception.id,
                     receiver,
@@ -177,6 +217,7 @@ class ReceptionStore:
                     goodput_bps,
                     message_id,
                     reception.received.isoformat(),
+                    verified,
                     data,
                 ),
             )
@@ -207,26 +248,35 @@ class ReceptionStore:
             raise KeyError(f"reception {reception.id} has been deleted")
         return bytes(row["data"])
 
-    def add_poses(self, receiver: str, seq: int, rows: Iterable[PoseRow]) -> None:
-        """Append ``(t_us, tx, ty, tz, qx, qy, qz, qw)`` rows sent in report ``seq``."""
+    def add_poses(
+        self, receiver: str, seq: int, rows: Iterable[PoseRow], *, verified: bool
+    ) -> None:
+        """Append ``(t_us, tx, ty, tz, qx, qy, qz, qw)`` rows sent in report ``seq``, verified
+        (a frame had proven the lock) or tentative."""
         with self._transaction() as db:
             db.executemany(
-                "INSERT OR IGNORE INTO receiver_poses VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                ((receiver, *row) for row in rows),
+                "INSERT OR IGNORE INTO receiver_poses "
+                "(receiver, t_us, tx, ty, tz, qx, qy, qz, qw, verified) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                ((receiver, *row, verified) for row in rows),
             )
             _mark(db, receiver, seq)
 
-    def poses(
-        self, receiver: str
-    ) -> list[tuple[int, float, float, float, float, float, float, float]]:
-        """All kept poses of ``receiver`` in time order, as TUM rows with t in microseconds."""
+    def poses(self, receiver: str, *, tentative: bool = False) -> list[PoseRow] | None:
+        """The kept poses of ``receiver`` in time order, as TUM rows with t in microseconds:
+        the verified ones, or with ``tentative`` all; None for a receiver that never
+        connected."""
         with self._transaction() as db:
+            if db.execute("SELECT 1 FROM receivers WHERE id = ?", (receiver,)).fetchone() is None:
+                return None
             rows = db.execute(
                 "SELECT t_us, tx, ty, tz, qx, qy, qz, qw FROM receiver_poses "
-                "WHERE receiver = ? ORDER BY t_us",
-                (receiver,),
+                "WHERE receiver = ? AND (? OR verified) ORDER BY t_us",
+                (receiver, tentative),
             ).fetchall()
-        return [tuple(row) for row in rows]
+        # Servers before ``/ws/receiver`` took strict JSON kept non-finite poses (a NaN reads
+        # back as NULL): not poses.
+        return [tuple(row) for row in rows if all(_finite(v) for v in row[1:])]
 
     def totals(self) -> tuple[int, int]:
         """(receptions, their bytes), for the metrics."""

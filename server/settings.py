@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Self
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
@@ -19,8 +20,15 @@ class Settings(BaseSettings):
     data_dir: Path = Path("data")
     """Holds the SQLite database; created on first use."""
     max_upload_bytes: int = Field(64 * MIB, ge=1)
+    upload_budget_bytes: int | None = Field(None, ge=1)
+    """Bytes of upload bodies held at once over all requests (None: twice ``max_upload_bytes``);
+    an upload that would pass it is refused with 503, to retry later. The memory uploads take
+    is a small multiple of it: encoding and storing a message copies it."""
     token: SecretStr | None = None
     """When set, writes (upload, delete) need ``Authorization: Bearer <token>``."""
+    allowed_origins: list[str] = []
+    """Web origins besides the server's own whose pages may change things here and open its
+    websockets (``https://screens.example``), e.g. behind a proxy that rewrites Host."""
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     default_profile: str = DEFAULT_PROFILE
@@ -34,6 +42,22 @@ class Settings(BaseSettings):
         if name not in PROFILE_NAMES:
             raise ValueError(f"unknown profile {name!r}; choose one of {', '.join(PROFILE_NAMES)}")
         return name
+
+    @model_validator(mode="after")
+    def _budget_holds_an_upload(self) -> Self:
+        if (
+            self.upload_budget_bytes is not None
+            and self.upload_budget_bytes < self.max_upload_bytes
+        ):
+            raise ValueError(
+                f"upload_budget_bytes ({self.upload_budget_bytes}) must be at least "
+                f"max_upload_bytes ({self.max_upload_bytes}), or no upload of that size could pass"
+            )
+        return self
+
+    @property
+    def upload_budget(self) -> int:
+        return self.upload_budget_bytes or 2 * self.max_upload_bytes
 
     @field_validator("token")
     @classmethod

@@ -39,6 +39,10 @@ CREATE INDEX IF NOT EXISTS messages_by_sha256 ON messages(sha256);
 COLUMNS = "id, name, sha256, size, profile, cells, created, facts"
 
 
+class MessageDeleted(LookupError):
+    """The message was deleted after it was looked up (a read racing a delete)."""
+
+
 @dataclass(frozen=True, slots=True)
 class StoredMessage:
     id: str
@@ -120,8 +124,8 @@ class MessageStore:
             row = db.execute(
                 "SELECT data FROM blobs WHERE sha256 = ?", (message.sha256,)
             ).fetchone()
-        if row is None:
-            raise KeyError(f"blob {message.sha256} of message {message.id} is missing")
+        if row is None:  # its last message was deleted since ``message`` was read
+            raise MessageDeleted(f"message {message.id!r} has been deleted")
         return bytes(row["data"])
 
     def delete(self, message_id: str) -> bool:

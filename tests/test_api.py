@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from urllib.parse import quote
 
 import pytest
 from fastapi.testclient import TestClient
@@ -60,7 +61,22 @@ def test_raw_upload_returns_the_message_facts(client: TestClient) -> None:
 
 def test_fast_profile_sends_data_on_almost_every_refresh(client: TestClient) -> None:
     facts = upload(client, b"x" * 100, "?profile=fast&cells=16")
-    assert 256 * 30 < facts["bit_rate_60hz"] < 256 * 60
+    assert facts["bit_rate_60hz"] == 256 * 60 * 31 / 32  # one refresh in 32 is a key frame
+
+
+def test_one_bit_rate_per_profile_and_cells_whatever_the_message(client: TestClient) -> None:
+    rates = {
+        upload(client, b"y" * size, "?profile=fast&cells=12")["bit_rate_60hz"]
+        for size in (1, 100, 1_000, 4_000)
+    }
+    (rate,) = rates
+    assert rate == round(rate, 1)
+    listed = client.get("/api/messages").json()["messages"]
+    assert {m["bit_rate_60hz"] for m in listed} == {rate}
+    assert all(isinstance(m["frames_per_loop"], int) for m in listed)
+    schema = client.get("/openapi.json").json()["components"]["schemas"]["MessagePublic"]
+    assert schema["properties"]["frames_per_loop"]["type"] == "integer"
+    assert "null" not in schema["properties"]["frames_per_loop"]["description"]
 
 
 def test_defaults_come_from_settings(tmp_path: Path) -> None:
@@ -75,7 +91,9 @@ def test_multipart_upload_keeps_the_file_name(client: TestClient) -> None:
     assert response.json()["name"] == "report.pdf"
     download = client.get(f"/api/messages/{response.json()['id']}/content")
     assert download.content == b"%PDF-1.7 ..."
-    assert download.headers["content-disposition"] == "attachment; filename*=UTF-8''report.pdf"
+    assert download.headers["content-disposition"] == (
+        "attachment; filename=\"report.pdf\"; filename*=UTF-8''report.pdf"
+    )
 
 
 def test_json_upload_stores_utf8_text(client: TestClient) -> None:
@@ -84,6 +102,18 @@ def test_json_upload_stores_utf8_text(client: TestClient) -> None:
     facts = response.json()
     assert facts["name"] == "message.txt"
     assert client.get(f"/api/messages/{facts['id']}/content").content == "grüße 👋".encode()
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "\U0001f468\u200d\U0001f469\u200d\U0001f467.txt",
+        "\u0645\u06cc\u200c\u062e\u0648\u0627\u0647\u0645",
+        "é" * 127 + "a",
+    ],
+)
+def test_names_may_hold_joiners_and_fill_255_bytes(client: TestClient, name: str) -> None:
+    assert upload(client, b"x", f"?name={quote(name)}")["name"] == name
 
 
 def test_name_loses_any_directory_part(client: TestClient) -> None:
@@ -139,6 +169,25 @@ def test_malformed_id_is_422(client: TestClient) -> None:
     assert response.json()["detail"][0]["loc"] == ["path", "message_id"]
 
 
+@pytest.mark.parametrize("read", ["content", "frames?count=1"])
+def test_a_message_deleted_while_it_is_read_is_404(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch, read: str
+) -> None:
+    facts = upload(client, b"going, going")
+    store = client.app.state.store
+    look_up = store.get
+
+    def deleted_right_after_the_lookup(message_id: str):
+        message = look_up(message_id)
+        store.delete(message_id)
+        return message
+
+    monkeypatch.setattr(store, "get", deleted_right_after_the_lookup)
+    response = client.get(f"/api/messages/{facts['id']}/{read}")
+    assert response.status_code == 404
+    assert response.json()["detail"] == f"message {facts['id']!r} has been deleted"
+
+
 def test_messages_survive_a_restart(tmp_path: Path) -> None:
     facts = upload(make_client(tmp_path), b"persistent")
     reopened = make_client(tmp_path)
@@ -171,6 +220,20 @@ BAD_UPLOADS = {
         422,
         "'file'",
     ),
+    "multipart file as a plain field": (
+        {"files": {"file": ("", b"abc")}},  # httpx sends no filename for ""
+        422,
+        "the form's 'file' part is a plain field",
+    ),
+    "multipart with no file chosen": (
+        {
+            "content": b'--B\r\nContent-Disposition: form-data; name="file"; filename=""\r\n'
+            b"Content-Type: application/octet-stream\r\n\r\n\r\n--B--\r\n",
+            "headers": {"Content-Type": "multipart/form-data; boundary=B"},
+        },
+        422,
+        "no file was chosen",
+    ),
     "no content type": ({"content": b"x"}, 415, "send one of application/octet-stream"),
     "text/plain": ({"content": b"x", "headers": {"Content-Type": "text/plain"}}, 415, "text/plain"),
 }
@@ -182,6 +245,11 @@ BAD_OPTIONS = {
     "empty name": ("?name=", "bad message name"),
     "name of dots": ("?name=..", "bad message name"),
     "name with a control character": ("?name=a%0Ab", "bad message name"),
+    "name with a C1 control": ("?name=a%C2%85b.txt", "U+0085"),
+    "name that shows reversed": ("?name=evil%E2%80%AEtxt.exe", "U+202E (RIGHT-TO-LEFT OVERRIDE)"),
+    "name with a zero-width space": ("?name=a%E2%80%8Bb.txt", "U+200B (ZERO WIDTH SPACE)"),
+    "name with a line separator": ("?name=a%E2%80%A8b.txt", "U+2028 (LINE SEPARATOR)"),
+    "name over 255 bytes": ("?name=" + "%C3%A9" * 128, "it is 256 bytes of UTF-8"),
     "payload too small for the profile": ("?profile=robust&cells=8", "use more cells"),
     "paper cells not a multiple of 4": ("?profile=paper&cells=10", "multiple of 4"),
 }
@@ -251,3 +319,37 @@ def test_profiles_lists_what_an_upload_may_choose(tmp_path: Path) -> None:
         "min_cells": 8,
         "max_cells": 128,
     }
+
+
+# --- other sites' pages ------------------------------------------------------------------------
+EVIL = {"Origin": "http://evil.example"}
+
+
+def test_pages_of_other_sites_cannot_change_anything(client: TestClient) -> None:
+    kept = upload(client, b"keep me")
+    before = stored_state(client)
+    writes = [
+        client.post("/api/messages", content=b"x", headers={**RAW, **EVIL}),
+        client.post("/api/messages", files={"file": ("a.txt", b"x")}, headers={**EVIL}),
+        client.delete(f"/api/messages/{kept['id']}", headers=EVIL),
+        client.post("/api/transmitter/status", json={"frame_index": 1}, headers=EVIL),
+        client.post("/api/messages", content=b"x", headers={**RAW, "Origin": "null"}),
+    ]
+    for response in writes:
+        assert response.status_code == 403
+        assert "a page of" in response.json()["detail"]
+    assert stored_state(client) == before
+    assert client.get("/api/messages", headers=EVIL).status_code == 200, "reads stay open"
+
+
+def test_the_servers_own_pages_and_programs_may_write(client: TestClient) -> None:
+    own = {"Origin": "http://testserver"}  # the Host TestClient sends
+    assert upload(client, b"from the page", **own)["size"] == 13
+    assert upload(client, b"from curl")["size"] == 9
+
+
+def test_an_allowed_origin_may_write(tmp_path: Path) -> None:
+    client = make_client(tmp_path, allowed_origins=["https://screens.example"])
+    assert upload(client, b"x", Origin="https://screens.example")["size"] == 1
+    response = client.post("/api/messages", content=b"x", headers={**RAW, **EVIL})
+    assert response.status_code == 403

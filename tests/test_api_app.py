@@ -6,6 +6,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import urllib.request
@@ -14,8 +15,15 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pydantic import ValidationError
 
+from eventocc.occ.profiles import DEFAULT_PROFILE, LinkSettings
+from eventocc.occ.stream import StreamDecoder, StreamEncoder
+from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.sim.display import Display
 from eventocc.server import demo
 from eventocc.server.__main__ import parse_args, settings_from_args
 from eventocc.server.app import create_app
@@ -43,6 +51,12 @@ def test_pages_and_assets_are_served(client: TestClient) -> None:
     assert script.status_code == 200 and "javascript" in script.headers["content-type"]
     assert client.get("/static/style.css").status_code == 200
     assert client.get("/static/missing.js").status_code == 404
+
+
+def test_the_site_has_an_icon_where_browsers_ask_for_it(client: TestClient) -> None:
+    icon = client.get("/favicon.ico")
+    assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
+    assert icon.text.startswith("<svg")
 
 
 def test_openapi_documents_every_upload_form_and_resolves_its_refs(client: TestClient) -> None:
@@ -73,13 +87,67 @@ def test_transmitter_status_round_trip(client: TestClient) -> None:
     assert client.app.state.live.transmitter.frame_index == 120
 
 
-@pytest.mark.parametrize(
-    "report", [{"frame_index": -1}, {"refresh_hz": 0}, {"missed_refreshes": "many"}]
+BAD_STATUSES = {
+    "frame before the first": ('{"frame_index": -1}', "greater than or equal to 0"),
+    "frame past the frames API": ('{"frame_index": 2147483648}', "less than or equal to"),
+    "counter not a number": ('{"missed_refreshes": "many"}', "valid integer"),
+    "unknown profile": ('{"profile": "bogus"}', "'paper', 'robust' or 'fast'"),
+    "fewer cells than a marker has": ('{"cells": 1}', "greater than or equal to 8"),
+    "more cells than a marker has": ('{"cells": 129}', "less than or equal to 128"),
+    "cells the profile cannot use": ('{"profile": "robust", "cells": 8}', "use more cells"),
+    "paper cells not whole bytes": ('{"profile": "paper", "cells": 10}', "multiple of 4"),
+    "no refresh": ('{"refresh_hz": 0}', "greater than or equal to 1"),
+    "refresh slower than any display": ('{"refresh_hz": 1e-9}', "greater than or equal to 1"),
+    "refresh faster than any display": ('{"refresh_hz": 1e6}', "less than or equal to 1000"),
+    "refresh not finite": ('{"refresh_hz": Infinity}', "finite number"),
+    "message id not an id": ('{"message_id": "../../etc/passwd"}', "should match pattern"),
+}
+
+
+@pytest.mark.parametrize("case", BAD_STATUSES.values(), ids=BAD_STATUSES.keys())
+def test_bad_transmitter_status_is_422_and_keeps_the_last(client: TestClient, case) -> None:
+    body, reason = case
+    good = {"profile": "fast", "cells": 24, "refresh_hz": 120.0, "frame_index": 7}
+    client.post("/api/transmitter/status", json=good)
+    response = client.post(
+        "/api/transmitter/status", content=body, headers={"Content-Type": "application/json"}
+    )
+    assert response.status_code == 422
+    assert reason in json.dumps(response.json()["detail"])
+    latest = client.get("/api/transmitter/status").json()
+    assert {k: latest[k] for k in good} == good
+
+
+STATUS_VALUES = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(min_value=-(2**40), max_value=2**40),
+    st.floats(allow_nan=False, allow_infinity=False),
+    st.sampled_from(["paper", "robust", "fast", "bogus", "", "0123456789ab"]),
 )
-def test_bad_transmitter_status_is_422_and_keeps_the_last(client: TestClient, report: dict) -> None:
-    client.post("/api/transmitter/status", json={"frame_index": 7})
-    assert client.post("/api/transmitter/status", json=report).status_code == 422
-    assert client.get("/api/transmitter/status").json()["frame_index"] == 7
+STATUS_FIELDS = ["message_id", "profile", "cells", "refresh_hz", "frame_index", "playing"]
+
+
+@settings(max_examples=150, deadline=None)
+@given(status=st.dictionaries(st.sampled_from(STATUS_FIELDS), STATUS_VALUES))
+def test_every_status_the_server_keeps_is_one_a_receiver_can_follow(
+    tmp_path_factory: pytest.TempPathFactory, status: dict
+) -> None:
+    """What a receiver daemon builds from the status (``receiver.live.screen``) must never
+    fail: one bad status would stop every receiver that follows the page."""
+    with TestClient(create_app(Settings(data_dir=tmp_path_factory.mktemp("data")))) as client:
+        if client.post("/api/transmitter/status", json=status).status_code != 200:
+            assert client.get("/api/transmitter/status").status_code == 404
+            return
+        kept = client.get("/api/transmitter/status").json()
+    profile, cells = kept["profile"] or DEFAULT_PROFILE, kept["cells"] or 16
+    link = LinkSettings(profile, cells, kept["refresh_hz"] or 60.0)
+    ReceiverConfig(
+        CameraModel.paper(), cells=link.cells, profile=profile, refresh_hz=link.refresh_hz
+    )
+    StreamDecoder(profile=profile, cells=cells)
+    Display(refresh_hz=kept["refresh_hz"] or 60.0)
+    StreamEncoder(b"any message", profile=profile, cells=cells).frames(kept["frame_index"], 1)
 
 
 # --- settings ----------------------------------------------------------------------------------
@@ -108,6 +176,10 @@ def test_settings_come_from_the_environment(
         ({"token": ""}, "token must not be empty"),
         ({"port": 70000}, "less than or equal to 65535"),
         ({"max_upload_bytes": 0}, "greater than or equal to 1"),
+        (
+            {"max_upload_bytes": 2 * MIB, "upload_budget_bytes": MIB},
+            "must be at least max_upload_bytes",
+        ),
     ],
 )
 def test_bad_settings_are_refused(options: dict, reason: str) -> None:
@@ -169,3 +241,18 @@ def test_demo_stopped_by_sigterm_stops_its_receiver_too(tmp_path: Path) -> None:
     finally:
         demo_process.kill()
     assert not Path(f"/proc/{receiver_pid}").exists(), "the receiver outlived the demo"
+
+
+def test_a_port_left_in_time_wait_is_free_for_the_demo_again() -> None:
+    """The demo restarted within a minute kept finding its port busy and moved to another."""
+    with socket.socket() as listener:
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        client = socket.create_connection(("127.0.0.1", port))
+        served, _ = listener.accept()
+        served.close()  # the server side closes first: its end waits in TIME_WAIT
+        client.recv(1)
+        client.close()
+    assert demo.port_is_free("127.0.0.1", port)

@@ -133,10 +133,12 @@ def _run(messages: list[dict], first_read_s: float | None) -> EventRun:
 
 
 def test_goodput_counts_the_frames_that_carried_the_message():
-    done = {"verified": True, "t_s": 1.0}
+    done = {"verified": False, "check": "unchecked", "matches_sent": True, "t_s": 1.0}
     # 8000 bits over the frames from 0.2 s to 1.0 s plus the last frame's own 0.2 s.
     assert _run([done], 0.2).goodput_bps(8000, 0.2) == pytest.approx(8000)
-    assert _run([{**done, "verified": False}], 0.2).goodput_bps(8000, 0.2) == 0.0
+    # A message other than the one sent counts for nothing, whatever its checks said.
+    wrong = {**done, "verified": True, "matches_sent": False}
+    assert _run([wrong], 0.2).goodput_bps(8000, 0.2) == 0.0
     assert _run([], None).goodput_bps(8000, 0.2) == 0.0
 
 

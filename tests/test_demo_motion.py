@@ -20,12 +20,18 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from eventocc.receiver.live.virtual_camera import DISTANCE_M
+from eventocc.receiver.live.virtual_camera import DISTANCE_M, default_camera
+from eventocc.receiver.pipeline.config import ReceiverConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 MOVING_WITHIN_S = 30.0
 DECODED_WITHIN_S = 30.0
-MIN_TRAVEL_M = 0.01
+MIN_TRAVEL_M = 0.05
+"""The gentle hand moves the camera this far within ``MOVING_WITHIN_S`` (29 cm in a run)."""
+DEPTH_WANDER = 0.08
+"""The hand-held path keeps the camera within this share of ``DISTANCE_M`` of the marker centre
+(its depth wander); the sideways shift and the pose's own error add at most ``DISTANCE_SLACK_M``."""
+DISTANCE_SLACK_M = 0.02
 
 
 def free_port() -> int:
@@ -104,8 +110,11 @@ def test_the_demo_shows_the_message_decoded_and_the_pose_moving(tmp_path) -> Non
     assert len(positions), f"no pose reached the dashboard:\n{log}"
     travel = np.linalg.norm(positions - positions[0], axis=1).max()
     assert travel >= MIN_TRAVEL_M, f"the camera stood still ({travel * 100:.1f} cm):\n{log}"
-    distance = np.linalg.norm(positions, axis=1)
-    assert np.median(distance) == pytest.approx(DISTANCE_M, rel=0.2), "as far as it stands"
+    size = ReceiverConfig(default_camera()).marker_size_m
+    distance = np.linalg.norm(positions - [size / 2, size / 2, 0.0], axis=1)  # from the centre
+    near, far = DISTANCE_M * (1 - DEPTH_WANDER), DISTANCE_M * (1 + DEPTH_WANDER)
+    assert near - DISTANCE_SLACK_M <= distance.min() and distance.max() <= far + DISTANCE_SLACK_M
+    assert np.median(distance) == pytest.approx(DISTANCE_M, abs=DISTANCE_SLACK_M)
     verified = [r for r in receptions if r["message_id"] is not None]
     assert verified, f"no verified message:\n{log}"
     took = datetime.fromisoformat(verified[0]["received"]) - started

@@ -10,6 +10,7 @@ import pytest
 from eventocc.receiver.events import concat, make_events
 from eventocc.receiver.io import EventFileError, detect_format, read_events, write_events
 from eventocc.receiver.io.stream import EventChecker
+from tests.event_files import write_aedat4, write_bag
 
 EVENTS = make_events(
     np.arange(1000, 41000, 100), np.arange(400) % 64, np.arange(400) % 48, np.arange(400) % 3 == 0
@@ -118,56 +119,22 @@ def test_hdf5_ms_to_idx_follows_dsec(tmp_path):
 
 # --------------------------------------------------------------------------------- ROS bags
 
-EVENT_MSG = "uint16 x\nuint16 y\ntime ts\nbool polarity\n"
-ARRAY_MSG = "std_msgs/Header header\nuint32 height\nuint32 width\n{pkg}/Event[] events\n"
-
-
-def _write_bag(path, ros2: bool, pkg: str, chunks) -> None:
-    pytest.importorskip("rosbags")
-    from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import Writer as Writer2
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
-    store.register(
-        {
-            **get_types_from_msg(EVENT_MSG, f"{pkg}/msg/Event"),
-            **get_types_from_msg(ARRAY_MSG.format(pkg=pkg), f"{pkg}/msg/EventArray"),
-        }
-    )
-    T = store.types
-    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
-    Event, Array = T[f"{pkg}/msg/Event"], T[f"{pkg}/msg/EventArray"]
-    msgtype = f"{pkg}/msg/EventArray"
-    writer = Writer2(path, version=9) if ros2 else Writer1(path)
-    with writer:
-        conn = writer.add_connection("/dvs/events", msgtype, typestore=store)
-        for i, chunk in enumerate(chunks):
-            events = [
-                Event(
-                    x=int(e["x"]),
-                    y=int(e["y"]),
-                    ts=Time(sec=int(e["t"]) // 10**6, nanosec=int(e["t"]) % 10**6 * 1000),
-                    polarity=bool(e["p"] > 0),
-                )
-                for e in chunk
-            ]
-            header = {"stamp": Time(sec=i, nanosec=0), "frame_id": "camera"}
-            if not ros2:
-                header["seq"] = i
-            msg = Array(header=Header(**header), height=48, width=64, events=events)
-            data = store.serialize_cdr(msg, msgtype) if ros2 else store.serialize_ros1(msg, msgtype)
-            writer.write(conn, i + 1, data)
-
 
 @pytest.mark.parametrize(
-    ("ros2", "pkg"), [(False, "dvs_msgs"), (False, "prophesee_event_msgs"), (True, "dvs_msgs")]
+    ("storage", "pkg"),
+    [
+        ("ros1", "dvs_msgs"),
+        ("ros1", "prophesee_event_msgs"),
+        ("sqlite3", "dvs_msgs"),
+        ("mcap", "dvs_msgs"),
+    ],
 )
-def test_rosbag_event_arrays(tmp_path, ros2, pkg):
+def test_rosbag_event_arrays(tmp_path, storage, pkg):
+    pytest.importorskip("rosbags")
     events = EVENTS[:50].copy()
     events["t"] += 1_700_000_000_000_000  # epoch microseconds, as drivers stamp them
-    path = tmp_path / ("bag2" if ros2 else "e.bag")
-    _write_bag(path, ros2, pkg, [events[:1], events[1:20], events[20:20], events[20:]])
+    path = tmp_path / ("e.bag" if storage == "ros1" else "bag2")
+    write_bag(path, storage, pkg, [events[:1], events[1:20], events[20:20], events[20:]])
     stream = read_events(path)
     assert (stream.format, stream.width, stream.height) == ("rosbag", 64, 48)
     np.testing.assert_array_equal(concat(stream), events)
@@ -196,18 +163,9 @@ def test_bag_without_event_topic_is_a_clear_error(tmp_path):
 
 
 def test_aedat4_written_by_faery(tmp_path):
-    faery = pytest.importorskip("faery")
+    pytest.importorskip("faery")
     pytest.importorskip("aedat")
-    array = np.zeros(len(EVENTS), dtype=faery.EVENTS_DTYPE)
-    array["t"], array["x"], array["y"], array["on"] = (
-        EVENTS["t"],
-        EVENTS["x"],
-        EVENTS["y"],
-        EVENTS["p"] > 0,
-    )
-    faery.events_stream_from_array(array, dimensions=(64, 48)).to_file(
-        tmp_path / "e.aedat4", zero_t0=False
-    )
+    write_aedat4(tmp_path / "e.aedat4", EVENTS, 64, 48)
     stream = read_events(tmp_path / "e.aedat4")
     assert (stream.format, stream.width, stream.height) == ("aedat4", 64, 48)
     np.testing.assert_array_equal(concat(stream), EVENTS)

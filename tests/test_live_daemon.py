@@ -6,13 +6,20 @@ import base64
 import hashlib
 import re
 import sys
-import time
 
 import numpy as np
 import pytest
 
 from eventocc.occ.profiles import LinkSettings
-from eventocc.occ.report import FrameStats, HealthReport, MessageReport, PoseReport, SurfaceReport
+from eventocc.occ.report import (
+    CellsReport,
+    FrameStats,
+    HealthReport,
+    MessageReport,
+    PoseReport,
+    SurfaceReport,
+    TrackingState,
+)
 from eventocc.occ.stream import ReceivedMessage
 from eventocc.receiver.events import make_events
 from eventocc.receiver.live.cameras import LiveCamera
@@ -52,28 +59,43 @@ class ScriptedPipeline:
     """Stands in for the receiver pipeline: one pose per 250 us of events, a frame per chunk,
     and a message on the chunk given."""
 
-    def __init__(self, message_on_chunk: int = 3) -> None:
+    cell_px = 2.5
+    detection_failure = "spatial: no inner-locator 'L' found (score 0.10)"
+
+    def __init__(
+        self, message_on_chunk: int = 3, name: str = "a.txt", proven_from_us: int = 0
+    ) -> None:
+        self.proven_from_us = proven_from_us
+        """Poses from this time on come out verified, the earlier ones tentative."""
         self.stream = ScriptedStream()
         self.chunks = 0
         self.message_on_chunk = message_on_chunk
+        self.name = name
 
     def push(self, chunk: np.ndarray) -> list:
+        if not len(chunk):  # as the receiver: a heartbeat of no events changes nothing
+            return []
         self.chunks += 1
         t0, t1 = int(chunk["t"][0]), int(chunk["t"][-1])
         out: list = [StateChange(t0, "tracking", "marker detected")] if self.chunks == 1 else []
         out += [
-            PoseEstimate(t, make_pose(np.eye(3), [t * 1e-6, 0.0, -1.0])) for t in range(t0, t1, 250)
+            PoseEstimate(t, make_pose(np.eye(3), [t * 1e-6, 0.0, -1.0]), t >= self.proven_from_us)
+            for t in range(t0, t1, 250)
         ]
-        bits = np.ones((4, 4), np.uint8)
+        bits = np.eye(4, dtype=np.uint8)
+        corrected = np.zeros((4, 4), bool)
+        corrected[0, 1] = True
         out.append(
             FrameOutput(
-                FrameRead(self.chunks, t1, bits, np.full((4, 4), 0.9), 0.8, len(chunk)), True
+                FrameRead(self.chunks, t1, bits, np.full((4, 4), 0.9), 0.8, len(chunk)),
+                True,
+                corrected=corrected,
             )
         )
         if self.chunks == self.message_on_chunk:
             data = b"the scripted message"
             digest = hashlib.sha256(data).hexdigest()
-            out.append(MessageOutput(t1, ReceivedMessage("a.txt", data, digest, 5, "robust")))
+            out.append(MessageOutput(t1, ReceivedMessage(self.name, data, digest, 5, "robust")))
         return out
 
     def finish(self) -> list:
@@ -112,11 +134,13 @@ def chunk(t0_us: int, t1_us: int, n: int = 200, seed: int = 0) -> np.ndarray:
     return make_events(t, rng.integers(0, 64, n), rng.integers(0, 48, n), rng.integers(0, 2, n))
 
 
-def run_daemon(tmp_path, chunks: list[np.ndarray], **config) -> tuple[Daemon, ListSink]:
+def run_daemon(
+    tmp_path, chunks: list[np.ndarray], pipeline: ScriptedPipeline | None = None, **config
+) -> tuple[Daemon, ListSink]:
     sink = ListSink()
     daemon = Daemon(
         ListSource(chunks),
-        ScriptedPipeline(),
+        pipeline or ScriptedPipeline(),
         sink,
         OutputFolder(tmp_path / "out"),
         DaemonConfig(**config),
@@ -137,6 +161,43 @@ def test_poses_are_decimated_for_the_server_and_kept_in_full_in_the_file(tmp_pat
     assert sent[3].position == pytest.approx((0.03, 0.0, -1.0))
 
 
+def test_tentative_poses_are_flagged_and_kept_out_of_the_trajectory(tmp_path) -> None:
+    chunks = [chunk(i * 10_000, (i + 1) * 10_000 - 1) for i in range(10)]
+    daemon, sink = run_daemon(tmp_path, chunks, ScriptedPipeline(proven_from_us=50_000))
+    sent = sink.of(PoseReport)
+    assert [p.verified for p in sent] == [p.t_us >= 50_000 for p in sent]
+    assert {p.verified for p in sent} == {True, False}
+    t_all, _ = read_tum(tmp_path / "out" / "trajectory_all.tum")
+    t_verified, T = read_tum(tmp_path / "out" / "trajectory.tum")
+    assert len(t_all) == daemon.summary.poses == 400
+    assert list(t_verified) == [t for t in t_all if t >= 50_000] and len(t_verified) == 200
+    assert np.allclose(T[:, 0, 3], t_verified * 1e-6)
+
+
+def test_a_read_frames_cells_go_out_packed_a_few_times_a_second(tmp_path) -> None:
+    chunks = [chunk(i * 10_000, (i + 1) * 10_000 - 1) for i in range(10)]
+    daemon, sink = run_daemon(tmp_path, chunks, news_hz=1e-3)  # at most one in 1000 s
+    (cells,) = sink.of(CellsReport)
+    assert daemon.summary.frames == 10, "every frame read, one shown"
+    assert (cells.cells, cells.frame_index, cells.t_us) == (4, 1, 9_999)
+    unpack = lambda b64: np.unpackbits(np.frombuffer(base64.b64decode(b64), np.uint8))  # noqa: E731
+    assert np.array_equal(unpack(cells.bits_b64).reshape(4, 4), np.eye(4))
+    assert np.flatnonzero(unpack(cells.corrected_b64)).tolist() == [1]
+    assert not any(durable for r, durable in sink.reports if isinstance(r, CellsReport))
+
+
+def test_health_says_what_the_camera_sees_and_why_it_cannot_lock(tmp_path) -> None:
+    daemon = Daemon(ListSource([]), ScriptedPipeline(), ListSink(), OutputFolder(tmp_path))
+    daemon.state = TrackingState.SCANNING
+    daemon.publish_news(None)
+    daemon.state = TrackingState.TRACKING
+    daemon.publish_news(None)
+    scanning, tracking = daemon.sink.of(HealthReport)
+    assert scanning.px_per_cell == tracking.px_per_cell == 2.5
+    assert scanning.detection_failure == "spatial: no inner-locator 'L' found (score 0.10)"
+    assert tracking.detection_failure is None, "a failure before the lock is history"
+
+
 def test_finished_messages_are_saved_and_reported_durably(tmp_path) -> None:
     _, sink = run_daemon(tmp_path, [chunk(i * 1000, i * 1000 + 999) for i in range(4)])
     (report,) = sink.of(MessageReport)
@@ -146,11 +207,51 @@ def test_finished_messages_are_saved_and_reported_durably(tmp_path) -> None:
     assert saved.read_bytes() == b"the scripted message" and saved.name.endswith("-a.txt")
 
 
+LONG = "n" * 251 + ".txt"  # 255 bytes: legal, and 268 with the digest prefix
+
+
+@pytest.mark.parametrize(
+    ("name", "ending"),
+    [
+        (LONG, "n.txt"),
+        ("n" * 243, "nnn"),
+        ("é" * 127 + ".bin", "é.bin"),  # 258 bytes of UTF-8: cut between characters
+        ("\U0001f600" * 63 + "x", "\U0001f600"),
+        ("a\x00b\x1f.txt", "a_b_.txt"),
+        ("../../etc/passwd", "-passwd"),
+        ("..", "-message"),
+        ("", "-message"),
+    ],
+)
+def test_any_legal_message_name_is_saved(tmp_path, name: str, ending: str) -> None:
+    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(4)]
+    _, sink = run_daemon(tmp_path, chunks, ScriptedPipeline(name=name))
+    assert sink.of(MessageReport)[0].name == name
+    (saved,) = (tmp_path / "out" / "messages").iterdir()
+    assert saved.read_bytes() == b"the scripted message"
+    assert len(saved.name.encode()) <= 255 and saved.name.endswith(ending)
+
+
+def test_a_message_that_cannot_be_saved_is_still_reported(tmp_path, caplog) -> None:
+    """The server's copy goes first: a full disk (here, no folder to write to) loses nothing
+    durable and stops nothing."""
+    output = OutputFolder(tmp_path / "out")
+    output.messages.rmdir()
+    output.messages.write_text("not a folder")
+    sink = ListSink()
+    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(6)]
+    daemon = Daemon(ListSource(chunks), ScriptedPipeline(), sink, output)
+    daemon.run()
+    assert [r.name for r in sink.of(MessageReport)] == ["a.txt"]
+    assert daemon.summary.chunks == 6
+    assert "message 'a.txt' complete (20 bytes), but not saved" in caplog.text
+
+
 def test_news_is_ephemeral_and_well_formed(tmp_path) -> None:
     daemon, sink = run_daemon(tmp_path, [chunk(0, 9_999)], news_hz=1000.0)
     news = [r for r, durable in sink.reports if not durable]
     kinds = {type(r).__name__ for r in news}
-    assert kinds == {"FrameStats", "ProgressReport", "HealthReport", "SurfaceReport"}
+    assert kinds == {"FrameStats", "ProgressReport", "HealthReport", "SurfaceReport", "CellsReport"}
     (surface,) = sink.of(SurfaceReport)
     pixels = np.frombuffer(base64.b64decode(surface.pixels_b64), np.uint8)
     assert pixels.size == 64 * 48 and pixels.max() == 255, "the newest event is at full white"
@@ -304,28 +405,33 @@ def test_health_carries_the_sources_speed(tmp_path, speed) -> None:
 
 
 class SlowPipeline(ScriptedPipeline):
-    """Takes twice a chunk's span to push it: a receiver at half real time."""
+    """Takes twice a chunk's span of the fake wall clock to push it: a receiver at half real
+    time."""
+
+    def __init__(self, wall) -> None:
+        super().__init__()
+        self.wall = wall
 
     def push(self, chunk: np.ndarray) -> list:
-        time.sleep(2 * (int(chunk["t"][-1]) - int(chunk["t"][0]) + 1) / 1e6)
+        self.wall.sleep(2 * (int(chunk["t"][-1]) - int(chunk["t"][0]) + 1) / 1e6)
         return super().push(chunk)
 
 
-def test_a_daemon_behind_a_live_camera_stays_live_and_says_so(tmp_path, caplog) -> None:
-    """In real time: 3 s of a camera's 10 ms chunks, each returned when complete."""
+def test_a_daemon_behind_a_live_camera_stays_live_and_says_so(tmp_path, caplog, wall) -> None:
+    """3 s of a camera's 10 ms chunks, each returned when complete, on a fake wall clock."""
+    start = wall.now
 
     def camera():
-        start = time.monotonic()
         for i in range(300):
-            time.sleep(max(start + (i + 1) / 100 - time.monotonic(), 0.0))
+            wall.now = max(wall.now, start + (i + 1) / 100)  # blocks until the chunk is done
             yield chunk(i * 10_000, (i + 1) * 10_000 - 1)
 
-    pipeline, sink = SlowPipeline(), ListSink()
-    daemon = Daemon(LiveCamera(64, 48, camera()), pipeline, sink, OutputFolder(tmp_path / "out"))
-    started = time.monotonic()
+    pipeline, sink = SlowPipeline(wall), ListSink()
+    source = LiveCamera(64, 48, camera(), clock=wall.clock)
+    daemon = Daemon(source, pipeline, sink, OutputFolder(tmp_path / "out"))
     with caplog.at_level("WARNING", logger="eventocc.receiver.live.sources"):
         daemon.run()
-    assert time.monotonic() - started < 3.0 + MAX_LAG_S + 0.3, "the lag stayed bounded"
+    assert wall.now - start <= 3.0 + MAX_LAG_S + 0.02, "the lag stayed bounded"
     assert 100 <= pipeline.chunks <= 200, "about half of the chunks were pushed"
     assert re.search(r"receiver at 0\.[3-6]\dx real time: .* skipped ahead", caplog.text)
     speeds = [h.source_speed for h in sink.of(HealthReport) if h.source_speed is not None]
@@ -342,3 +448,43 @@ def test_live_clock_says_how_late_and_what_is_due_now() -> None:
     now[0] += 0.5
     assert clock.wait(1_300_000) == pytest.approx(0.45), "late: it says by how much"
     assert clock.now_us() == 1_750_000
+
+
+class PausingSource(ListSource):
+    """A virtual camera whose screen is paused between two stretches of events: it yields empty
+    heartbeats and says why (``waiting``) meanwhile."""
+
+    def __init__(self) -> None:
+        super().__init__([])
+        self.waiting: str | None = None
+
+    def chunks(self):
+        yield chunk(0, 9_999)
+        self.waiting = "the transmitter page is paused"
+        yield chunk(0, 0, n=0)
+        self.waiting = None
+        yield chunk(10_000, 19_999)
+
+
+def test_a_source_with_nothing_to_show_makes_the_daemon_idle_and_say_why(tmp_path) -> None:
+    source, sink = PausingSource(), ListSink()
+    daemon = Daemon(
+        source, ScriptedPipeline(), sink, OutputFolder(tmp_path / "out"), DaemonConfig(news_hz=1e6)
+    )
+    states = []
+    for events in source.chunks():
+        daemon.process(events)
+        states.append(daemon.state)
+    assert states == [TrackingState.TRACKING, TrackingState.IDLE, TrackingState.SCANNING]
+    waits = [(h.state, h.waiting) for h in sink.of(HealthReport)]
+    assert (TrackingState.IDLE, "the transmitter page is paused") in waits
+    assert waits[-1] == (TrackingState.SCANNING, None), "not a frozen 'tracking'"
+
+
+def test_a_long_reason_to_wait_is_cut_to_fit_the_report(tmp_path) -> None:
+    source, sink = PausingSource(), ListSink()
+    daemon = Daemon(source, ScriptedPipeline(), sink, OutputFolder(tmp_path / "out"))
+    source.waiting = "the server says: " + "x" * 1000
+    daemon.publish_news(None)
+    (health,) = sink.of(HealthReport)
+    assert health.waiting.startswith("the server says: xxx") and len(health.waiting) <= 300

@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -83,14 +84,22 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
         row = page.locator(f'#receptions li[data-sha256="{digest}"]')
         expect(row).to_contain_text("hello.txt", timeout=180_000)
         expect(row).to_contain_text("matches upload")
+        expect(row).to_contain_text("message at")  # its own rate, not the link's goodput
         expect(page.locator("#pose-readout")).to_contain_text("distance", timeout=30_000)
         expect(page.locator("#tracking-state")).to_have_text("tracking", timeout=30_000)
         # Verified frames keep flowing after the message completed: goodput is not zero.
-        expect(page.locator("#goodput-value")).to_contain_text("kbit/s", timeout=30_000)
+        goodput = page.locator("#goodput-value")
+        expect(goodput).to_have_text(re.compile(r"^[1-9][\d.]* kbit/s$"), timeout=30_000)
         page.wait_for_timeout(1500)  # let the sparklines take a few samples
         page.screenshot(path=str(artifacts / "dashboard.png"), full_page=True)
         readout = page.locator("#pose-readout").text_content()
         href = row.locator("a").get_attribute("href")
+        # A transmitter page with nothing to play shows the camera nothing: idle, and why.
+        paused = {"message_id": None, "playing": False}
+        page.request.post(f"{base_url}/api/transmitter/status", data=paused)
+        expect(page.locator("#tracking-state")).to_have_text(
+            "idle: the transmitter page has no message to play", timeout=30_000
+        )
     finally:
         daemon.send_signal(signal.SIGTERM)
         _, log = daemon.communicate(timeout=60)
@@ -98,7 +107,9 @@ def test_uploaded_message_reaches_the_dashboard_verified_with_the_pose(
     with urllib.request.urlopen(base_url + href) as response:
         assert response.read() == TEXT.encode()
     distance = float(readout.split("distance")[1].split()[0])
-    assert distance == pytest.approx(DISTANCE_M, rel=0.2), (
+    # A still camera's PnP pose is within a centimetre (test_pipeline_e2e); the readout has two
+    # decimals.
+    assert distance == pytest.approx(DISTANCE_M, abs=0.015), (
         f"the virtual camera stands {DISTANCE_M} m away, the dashboard says {readout}"
     )
     assert (tmp_path / "out" / "messages" / f"{digest[:12]}-hello.txt").read_text() == TEXT

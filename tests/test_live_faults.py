@@ -10,17 +10,17 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
 
 import pytest
 
-from eventocc.occ.report import MessageReport, PoseReport, TrackingState
+from eventocc.occ.report import MessageReport, PoseReport, TrackingState, public_receiver_id
 from eventocc.occ.stream import ReceivedMessage
 from eventocc.receiver.live.publisher import Publisher
 from eventocc.receiver.live.spool import Spool
+from tests.live_clients import wait_until
 
 TOKEN = "fault-token"
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,14 +35,6 @@ def free_port() -> int:
 def get_json(url: str) -> dict:
     with urllib.request.urlopen(url, timeout=5) as response:
         return json.load(response)
-
-
-def wait_until(condition, timeout_s: float = 30.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 class ServerProcess:
@@ -105,6 +97,7 @@ def pose(t_us: int) -> PoseReport:
         position=(0.0, 0.0, -1.0),
         quaternion_xyzw=(0, 0, 0, 1.0),
         state=TrackingState.TRACKING,
+        verified=True,
     )
 
 
@@ -123,8 +116,8 @@ def test_server_killed_and_restarted_mid_stream_loses_nothing(server_process, tm
         for i in range(3, 6):  # the server is away: these wait in the spool
             publisher.publish(message(i), durable=True)
             publisher.publish(pose(i * 10_000), durable=True)
-        time.sleep(0.3)
-        assert len(spool) == 6 and not publisher.stats.connected
+        wait_until(lambda: not publisher.stats.connected, what="the publisher to see it gone")
+        assert len(spool) == 6
 
         server_process.start()
         wait_until(lambda: len(spool) == 0, what="the spool to drain after the restart")
@@ -135,7 +128,7 @@ def test_server_killed_and_restarted_mid_stream_loses_nothing(server_process, tm
     assert names == [f"m{i}.txt" for i in range(6)], "every message exactly once"
     assert publisher.stats.connections == 2
     with urllib.request.urlopen(
-        f"{server_process.url}/api/receivers/{spool.receiver_id}/trajectory"
+        f"{server_process.url}/api/receivers/{public_receiver_id(spool.receiver_id)}/trajectory"
     ) as response:
         rows = response.read().decode().splitlines()[1:]
     assert [row.split()[0] for row in rows] == [f"0.0{i}0000" for i in range(6)]
@@ -148,6 +141,7 @@ sys.path.insert(0, {tests!r})
 from test_live_faults import message
 from eventocc.receiver.live.publisher import Publisher
 from eventocc.receiver.live.spool import Spool
+from tests.live_clients import wait_until
 
 spool = Spool(Path({out!r}) / "spool.db")
 publisher = Publisher({url!r}, spool, token={token!r}, backoff_s=(0.05, 0.5)).start()
@@ -234,12 +228,12 @@ def test_publisher_needs_a_websocket_url(tmp_path, url: str) -> None:
     spool.close()
 
 
-def test_close_gives_up_on_an_absent_server_within_its_timeout(tmp_path) -> None:
+def test_close_gives_up_on_an_absent_server(tmp_path) -> None:
+    # A close that waited for the server forever would hang here (the suite's timeout).
     spool = Spool(tmp_path / "spool.db")
     publisher = Publisher(f"ws://127.0.0.1:{free_port()}", spool, backoff_s=(0.05, 0.1)).start()
     publisher.publish(message(1), durable=True)
-    started = time.monotonic()
     publisher.close(drain_timeout_s=0.5)
-    assert time.monotonic() - started < 5
+    assert not publisher.stats.connected
     assert len(spool) == 1, "undelivered reports stay in the spool for the next run"
     spool.close()

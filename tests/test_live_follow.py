@@ -4,39 +4,28 @@ camera's daemon follows the page through ``ScreenWatch``."""
 
 from __future__ import annotations
 
-import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
 from eventocc.occ.profiles import LinkSettings
 from eventocc.receiver.live.screen import ScreenWatch, TransmitterClient
+from tests.live_clients import post_json
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def post(base_url: str, path: str, body: dict) -> dict:
-    req = urllib.request.Request(
-        base_url + path,
-        data=json.dumps(body).encode(),
-        headers={"Content-Type": "application/json"},
-        method="POST",
-    )
-    with urllib.request.urlopen(req, timeout=10) as response:
-        return json.load(response)
 
 
 def play(base_url: str, message: dict, refresh_hz: float = 60.0) -> None:
     """Report what a transmitter page showing ``message`` would report."""
     status = {"message_id": message["id"], "profile": message["profile"], "playing": True}
-    post(
+    post_json(
         base_url,
         "/api/transmitter/status",
         {**status, "cells": message["cells"], "frame_index": 0, "refresh_hz": refresh_hz},
@@ -88,8 +77,8 @@ def test_daemon_rebuilds_its_receiver_when_the_transmitter_switches(
     serve_app, tmp_path, pinned: tuple[str, ...]
 ) -> None:
     base_url, _ = serve_app()
-    robust = post(base_url, "/api/messages?name=a.txt&profile=robust&cells=16", {"text": "a"})
-    fast = post(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
+    robust = post_json(base_url, "/api/messages?name=a.txt&profile=robust&cells=16", {"text": "a"})
+    fast = post_json(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
     play(base_url, robust)
     daemon = DaemonProcess(base_url, tmp_path / "out", *pinned)
     try:
@@ -112,7 +101,7 @@ def test_screen_watch_follows_the_page_and_survives_an_absent_server(serve_app, 
     assert watch.link == LinkSettings("robust", 16), "nothing plays: the server's defaults"
     watch.start()
     try:
-        fast = post(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
+        fast = post_json(base_url, "/api/messages?name=b.txt&profile=fast&cells=12", {"text": "b"})
         play(base_url, fast, refresh_hz=143.9)
         deadline = time.monotonic() + 10
         while watch.link != LinkSettings("fast", 12, 144) and time.monotonic() < deadline:
@@ -124,3 +113,26 @@ def test_screen_watch_follows_the_page_and_survives_an_absent_server(serve_app, 
     nobody = ScreenWatch(TransmitterClient("http://127.0.0.1:9"), LinkSettings("paper", 8))
     assert nobody.link == LinkSettings("paper", 8)
     assert "assuming" in caplog.text and "until it answers" in caplog.text
+
+
+def test_receive_waits_for_a_server_that_is_down_at_its_start(serve_app, tmp_path) -> None:
+    with socket.socket() as sock:  # a free port, nobody listening yet
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    base_url = f"http://127.0.0.1:{port}"
+    daemon = DaemonProcess(base_url, tmp_path / "out")
+    try:
+        daemon.wait_for("assuming robust with 16 cells at 60 Hz until it answers")
+        daemon.wait_for("virtual camera waiting: server unreachable")
+        daemon.wait_for("retrying in 0.", timeout_s=10)  # the publisher backs off
+        serve_app(port=port)
+        message = post_json(
+            base_url, "/api/messages?name=a.txt&profile=fast&cells=12", {"text": "a"}
+        )
+        play(base_url, message)
+        daemon.wait_for(f"watching message {message['id']} (fast, 12 cells, 60.0 Hz)")
+        daemon.wait_for("switched to fast with 12 cells at 60 Hz: rebuilding")
+        daemon.wait_for(f"connected to ws://127.0.0.1:{port}/ws/receiver")
+    finally:
+        log = daemon.stop()
+    assert daemon.process.returncode == 0, log

@@ -6,78 +6,34 @@ from __future__ import annotations
 import asyncio
 import base64
 import hashlib
+import http.client
 import json
 import os
 import socket
+import sqlite3
 import urllib.error
 import urllib.request
 
 import pytest
 from websockets.asyncio.client import connect
-from websockets.exceptions import ConnectionClosed
 
-from eventocc.occ.report import Hello, MessageReport, PoseReport, SurfaceReport, TrackingState
-from eventocc.occ.stream import ReceivedMessage
-from eventocc.server.receptions import ReceptionStore
-
-TOKEN = "s3cret-token"
-TEXT = b"received over the air"
-
-
-def ws_url(base_url: str, path: str) -> str:
-    return "ws" + base_url.removeprefix("http") + path
-
-
-def get(base_url: str, path: str) -> bytes:
-    with urllib.request.urlopen(base_url + path, timeout=5) as response:
-        return response.read()
-
-
-def upload(base_url: str, data: bytes, name: str = "note.txt") -> dict:
-    request = urllib.request.Request(
-        f"{base_url}/api/messages?name={name}",
-        data=data,
-        headers={"Content-Type": "application/octet-stream", "Authorization": f"Bearer {TOKEN}"},
-        method="POST",
-    )
-    with urllib.request.urlopen(request, timeout=5) as response:
-        return json.load(response)
-
-
-def message_report(data: bytes = TEXT, name: str = "note.txt") -> MessageReport:
-    digest = hashlib.sha256(data).hexdigest()
-    return MessageReport.of(ReceivedMessage(name, data, digest, 7, "robust"))
-
-
-def pose(t_us: int) -> PoseReport:
-    return PoseReport(
-        t_us=t_us,
-        position=(0.1, 0.2, -0.5),
-        quaternion_xyzw=(0.0, 0.0, 0.0, 1.0),
-        state=TrackingState.TRACKING,
-    )
-
-
-def envelope(seq: int | None, report) -> str:
-    return json.dumps({"seq": seq, "report": json.loads(report.model_dump_json())})
-
-
-async def open_receiver(base_url: str, receiver_id: str = "rx-1", token: str | None = TOKEN):
-    ws = await connect(ws_url(base_url, "/ws/receiver"))
-    await ws.send(Hello(receiver_id=receiver_id, token=token).model_dump_json())
-    return ws, json.loads(await ws.recv())
-
-
-async def close_code(base_url: str, first: str, then: str | None = None) -> tuple[int, str]:
-    async with connect(ws_url(base_url, "/ws/receiver")) as ws:
-        await ws.send(first)
-        if then is not None:
-            await ws.recv()  # welcome
-            await ws.send(then)
-        with pytest.raises(ConnectionClosed) as closed:
-            while True:
-                await asyncio.wait_for(ws.recv(), 5)
-    return closed.value.rcvd.code, closed.value.rcvd.reason
+from eventocc.occ.report import Hello, SurfaceReport
+from eventocc.server.receptions import SCHEMA, ReceptionStore
+from eventocc.server.settings import MIB
+from tests.live_clients import (
+    RX_1,
+    TEXT,
+    TOKEN,
+    close_code,
+    envelope,
+    get,
+    message_report,
+    open_receiver,
+    pose,
+    upload,
+    wait_until,
+    ws_url,
+)
 
 
 @pytest.mark.parametrize(
@@ -123,10 +79,43 @@ def test_finished_message_is_stored_verified_acked_and_downloadable(serve_app) -
     assert len(receptions) == 1
     (reception,) = receptions
     assert reception["sha256"] == hashlib.sha256(TEXT).hexdigest()
-    assert reception["message_id"] == uploaded["id"]
-    assert reception["receiver"] == "rx-1" and reception["name"] == "note.txt"
+    assert reception["message_id"] == uploaded["id"] and reception["verified"] is True
+    assert reception["receiver"] == RX_1 and reception["name"] == "note.txt"
     assert get(base_url, reception["url"]) == TEXT
     assert json.loads(get(base_url, f"/api/receptions/{reception['id']}"))["size"] == len(TEXT)
+
+
+DOWNLOAD_NAMES = {
+    "日本語.txt": 'attachment; filename="___.txt"; '
+    "filename*=UTF-8''%E6%97%A5%E6%9C%AC%E8%AA%9E.txt",
+    'a".txt': "attachment; filename=\"a_.txt\"; filename*=UTF-8''a%22.txt",
+    "x\r\nSet-Cookie: y=1": 'attachment; filename="x__Set-Cookie: y=1"; '
+    "filename*=UTF-8''x%0D%0ASet-Cookie%3A%20y%3D1",
+    "100%\\ sure": "attachment; filename=\"100__ sure\"; filename*=UTF-8''100%25%5C%20sure",
+}
+
+
+def test_a_reception_downloads_under_any_name_a_receiver_sends(serve_app) -> None:
+    """RFC 6266: the exact name in ``filename*``, an ASCII stand-in in ``filename``; and one
+    keep-alive connection serves every download."""
+    base_url, _ = serve_app(token=TOKEN)
+
+    async def send_receptions() -> None:
+        ws, _ = await open_receiver(base_url)
+        for seq, name in enumerate(DOWNLOAD_NAMES, 1):
+            await ws.send(envelope(seq, message_report(name.encode(), name)))
+            await ws.recv()
+        await ws.close()
+
+    asyncio.run(send_receptions())
+    receptions = json.loads(get(base_url, "/api/receptions"))["receptions"]
+    connection = http.client.HTTPConnection(base_url.removeprefix("http://"), timeout=5)
+    for reception in receptions:
+        connection.request("GET", reception["url"])
+        response = connection.getresponse()
+        assert response.read() == reception["name"].encode()
+        assert response.headers["Content-Disposition"] == DOWNLOAD_NAMES[reception["name"]]
+    connection.close()
 
 
 def test_reconnecting_receiver_learns_what_was_stored(serve_app) -> None:
@@ -143,7 +132,7 @@ def test_reconnecting_receiver_learns_what_was_stored(serve_app) -> None:
         return welcome["last_seq"]
 
     assert asyncio.run(scenario()) == 3
-    tum = get(base_url, "/api/receivers/rx-1/trajectory").decode().splitlines()
+    tum = get(base_url, f"/api/receivers/{RX_1}/trajectory").decode().splitlines()
     assert tum[1:] == [
         f"0.0{i}0000 0.100000000 0.200000000 -0.500000000 0.000000000 0.000000000 "
         "0.000000000 1.000000000"
@@ -196,10 +185,12 @@ def test_dashboards_see_receivers_poses_and_receptions(serve_app) -> None:
     seen = asyncio.run(scenario())
     kinds = [update["type"] for update in seen]
     assert kinds == ["receivers", "pose", "reception", "surface"]
-    assert seen[0]["receivers"][0]["receiver_id"] == "rx-1"
+    assert seen[0]["receivers"] == [{"receiver": RX_1, "version": 1}]
     assert "token" not in json.dumps(seen[0]), "a receiver's token must never reach viewers"
-    assert seen[1]["receiver"] == "rx-1" and seen[1]["position"] == [0.1, 0.2, -0.5]
+    assert "rx-1" not in json.dumps(seen), "nor its secret id"
+    assert seen[1]["receiver"] == RX_1 and seen[1]["position"] == [0.1, 0.2, -0.5]
     assert seen[2]["url"].startswith("/api/receptions/")
+    assert seen[2]["stream_id"] == 7, "so the dashboards end that stream's progress bar"
 
 
 def test_transmitter_socket_and_rest_status_are_one_state(serve_app) -> None:
@@ -284,6 +275,34 @@ def test_a_stalled_dashboard_does_not_slow_the_others(serve_app) -> None:
     assert hub.evicted == 1, "then dropped"
 
 
+def test_uploads_share_one_memory_budget(serve_app) -> None:
+    """Two uploads under way hold the whole budget: a third is refused (503) until they end,
+    whatever its own size."""
+    base_url, app = serve_app(max_upload_bytes=MIB, upload_budget_bytes=2 * MIB)
+    budget = app.state.upload_budget
+    host, port = base_url.removeprefix("http://").split(":")
+    head = (
+        "POST /api/messages HTTP/1.1\r\nHost: x\r\nContent-Type: application/octet-stream\r\n"
+        f"Content-Length: {MIB}\r\n\r\n"
+    ).encode()
+    slow = [socket.create_connection((host, int(port)), timeout=10) for _ in range(2)]
+    for sock in slow:
+        sock.sendall(head + b"x" * 1000)  # and the rest later
+    wait_until(lambda: budget.held == 2 * MIB)
+
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        upload(base_url, b"small")
+    assert refused.value.code == 503 and refused.value.headers["Retry-After"]
+    assert "busy with other uploads" in json.loads(refused.value.read())["detail"]
+
+    for sock in slow:
+        sock.sendall(b"x" * (MIB - 1000))
+        assert sock.recv(100).startswith(b"HTTP/1.1 201")
+        sock.close()
+    wait_until(lambda: budget.held == 0)
+    assert upload(base_url, b"small")["size"] == 5
+
+
 def test_websockets_are_not_compressed(serve_app) -> None:
     """Per-message deflate would cost the server one zlib stream per viewer for small JSON."""
     base_url, _ = serve_app()
@@ -336,3 +355,67 @@ def test_store_refuses_bytes_that_do_not_match_their_digest(tmp_path) -> None:
             message_id=None,
         )
     assert store.receptions() == [] and store.register("rx") == 0
+
+
+def test_store_keeps_whether_the_sender_checked_the_bytes(tmp_path) -> None:
+    path = tmp_path / "db.sqlite"
+    with sqlite3.connect(path) as db:  # a database from before the column
+        db.executescript(SCHEMA.replace("    verified   INTEGER,\n", ""))
+        db.execute("INSERT INTO receivers VALUES ('rx', 'now', 'now', 1)")
+        db.execute(
+            "INSERT INTO receptions (id, receiver, seq, name, sha256, size, received, data) "
+            "VALUES ('000000000001', 'rx', 1, 'old', ?, 1, '2026-01-01T00:00:00+00:00', x'61')",
+            (hashlib.sha256(b"a").hexdigest(),),
+        )
+    store = ReceptionStore(path)
+    for seq, verified in ((2, True), (3, False)):
+        data = bytes([seq])
+        store.add(
+            receiver="rx",
+            seq=seq,
+            name=str(seq),
+            data=data,
+            claimed_sha256=hashlib.sha256(data).hexdigest(),
+            goodput_bps=None,
+            message_id=None,
+            verified=verified,
+        )
+    assert {r.name: r.verified for r in store.receptions()} == {
+        "old": None,
+        "2": True,
+        "3": False,
+    }
+
+
+def test_the_trajectory_holds_verified_poses_unless_all_are_asked_for(serve_app) -> None:
+    base_url, _ = serve_app(token=TOKEN)
+
+    async def scenario() -> None:
+        ws, _ = await open_receiver(base_url)
+        for seq, (t_us, verified) in enumerate([(1_000, False), (2_000, True), (3_000, True)], 1):
+            await ws.send(envelope(seq, pose(t_us, verified=verified)))
+            await ws.recv()  # stored, then acked
+        await ws.close()
+
+    asyncio.run(scenario())
+    times = lambda text: [line.split()[0] for line in text.decode().splitlines()[1:]]  # noqa: E731
+    trajectory = f"/api/receivers/{RX_1}/trajectory"
+    assert times(get(base_url, trajectory)) == ["0.002000", "0.003000"]
+    assert times(get(base_url, trajectory + "?all=true")) == ["0.001000", "0.002000", "0.003000"]
+    assert times(get(base_url, trajectory + "?all=false")) == ["0.002000", "0.003000"]
+
+
+def test_poses_kept_before_the_verified_flag_are_kept_as_tentative(tmp_path) -> None:
+    path = tmp_path / "db.sqlite"
+    with sqlite3.connect(path) as db:  # a database from before the column
+        db.executescript(SCHEMA.replace("    verified INTEGER,\n", ""))
+        db.execute("PRAGMA user_version = 1")  # receivers already under their public id
+        db.execute("INSERT INTO receivers VALUES ('rx', 'now', 'now', 1)")
+        db.execute("INSERT INTO receiver_poses VALUES ('rx', 5, 0, 0, 0, 0, 0, 0, 1)")
+    db.close()
+    store = ReceptionStore(path)
+    store.add_poses("rx", 2, [(6, 1, 0, 0, 0, 0, 0, 1)], verified=True)
+    store.add_poses("rx", 3, [(7, 2, 0, 0, 0, 0, 0, 1)], verified=False)
+    assert [row[0] for row in store.poses("rx")] == [6]
+    assert [row[0] for row in store.poses("rx", tentative=True)] == [5, 6, 7]
+    store.close()

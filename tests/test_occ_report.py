@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+
 import pydantic
 import pytest
 
@@ -16,7 +18,7 @@ from eventocc.occ.report import (
     TrackingState,
     parse_report,
 )
-from eventocc.occ.stream import StreamDecoder, StreamEncoder
+from eventocc.occ.stream import ReceivedMessage, StreamDecoder, StreamEncoder
 
 REPORTS = [
     PoseReport(
@@ -54,6 +56,41 @@ def test_a_decoded_message_travels_as_a_report() -> None:
     )
 
 
+def _decode(encoder: StreamEncoder, decoder: StreamDecoder) -> ReceivedMessage:
+    for k in range(4 * encoder.cycle):
+        if encoder.is_data_frame(k) and (got := decoder.push(encoder.payload_bits(k))):
+            return got[0]
+    raise AssertionError("the message did not decode")
+
+
+def test_framed_messages_are_verified_against_the_sha256_their_sender_sent() -> None:
+    sent = b"\x00\xffpayload"
+    got = _decode(StreamEncoder(sent, profile="robust"), StreamDecoder(profile="robust"))
+    assert got.sender_sha256 == hashlib.sha256(sent).hexdigest() and got.verified
+    report = parse_report(MessageReport.of(got).model_dump_json())
+    assert report.verified and report.sender_sha256 == got.sender_sha256
+
+
+def test_paper_messages_are_unchecked_even_when_right() -> None:
+    # paper sends no checksum: a plausible wrong message decodes just as a right one does.
+    sent, other = b"the message sent", b"another message!"
+    decoder = StreamDecoder(profile="paper", message_size=len(sent))
+    got = _decode(StreamEncoder(other, profile="paper"), decoder)
+    assert got.data == other and got.sender_sha256 is None and not got.verified
+    report = parse_report(MessageReport.of(got).model_dump_json())
+    assert not report.verified
+
+
+def test_a_report_from_before_sender_sha256_still_parses_as_unchecked() -> None:
+    text = (
+        '{"type": "message", "stream_id": 1, "name": "", "size": 1, "sha256": "'
+        + hashlib.sha256(b"a").hexdigest()
+        + '", "data_b64": "YQ==", "profile": "robust"}'
+    )
+    report = parse_report(text)
+    assert isinstance(report, MessageReport) and not report.verified
+
+
 def test_progress_report_takes_the_decoder_progress() -> None:
     progress = {"stream_id": 1, "symbols_held": 2, "symbols_needed": 9, "name": None, "size": None}
     assert ProgressReport(**progress).symbols_needed == 9
@@ -79,6 +116,14 @@ def test_progress_report_takes_the_decoder_progress() -> None:
             + "0" * 64
             + '", "data_b64": "!!", "profile": "robust"}',
             "not valid base64",
+        ),
+        (
+            '{"type": "message", "stream_id": 1, "name": "", "size": 1, "sha256": "'
+            + hashlib.sha256(b"a").hexdigest()
+            + '", "data_b64": "YQ==", "profile": "robust", "sender_sha256": "'
+            + "0" * 64
+            + '"}',
+            "does not match the sender's sha256",
         ),
         ('{"type": "health", "cpu_load": 1, "events_per_s": 1, "state": "asleep"}', "state"),
         (

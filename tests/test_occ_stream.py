@@ -371,5 +371,25 @@ def test_least_confident_bytes_are_erased_when_errors_alone_fail() -> None:
     assert hard.decode(bits, confidence) is None
     header, got = codec.decode(bits, confidence)
     assert got == symbol and header.esi == 3
+    # The retries report what they corrected like a first-pass decode: the flipped cells.
+    assert np.array_equal(codec.corrected, confidence < 1)
     # Without confidences nothing tells the wrong bytes apart.
     assert codec.decode(bits) is None
+
+
+@pytest.mark.parametrize("profile", FRAMED)
+def test_decoder_marks_the_cells_its_code_corrected(profile: str) -> None:
+    enc = StreamEncoder(b"hello" * 40, profile=profile, cells=16)
+    dec = StreamDecoder(profile=profile, cells=16)
+    k = next(k for k in range(10) if enc.is_data_frame(k))
+    bits = enc.payload_bits(k)
+    flipped = np.zeros_like(bits, dtype=bool)
+    flipped[[0, 3, 9], [2, 7, 11]] = True
+    dec.push(bits ^ flipped)
+    assert dec.verified_bits, "the frame decoded"
+    assert np.array_equal(dec.corrected, flipped)
+    dec.push(bits)
+    assert not dec.corrected.any(), "a clean frame needs no correction"
+    dec.push(np.random.default_rng(2).integers(0, 2, (16, 16), dtype=np.uint8))
+    assert dec.corrected is None, "a frame that did not decode has no corrections"
+    assert StreamDecoder(profile="paper", cells=16, message_size=10).corrected is None

@@ -13,7 +13,7 @@ from bench.tracking import CAMERA, MESSAGE, hand_held_config, hand_held_scene
 from eventocc.receiver.pipeline.config import DecoderParams, ReceiverConfig
 from eventocc.receiver.pipeline.decoder import _ALIGN_SHIFTS, CellReader
 from eventocc.receiver.pipeline.receiver import MessageOutput, Receiver
-from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth, decode_events
 from eventocc.receiver.poses import invert
 from eventocc.receiver.sim import simulate
 from tests.cells import locator_block
@@ -121,11 +121,7 @@ def _decode(flow_px_per_ms: float, duration_s: float, true_pose: bool = False, s
     rx = Receiver(hand_held_config())
     if true_pose:
         rx.pose_at = lambda t_us: invert(rec.pose_at(t_us))
-    log = DecodeLog(rx, FrameTruth(scene.encoder, scene.display.refresh_hz))
-    for chunk in rec:
-        log.add(rx.push(chunk))
-    log.add(rx.finish())
-    return log
+    return decode_events(rx, rec, FrameTruth(scene.encoder, scene.display.refresh_hz))
 
 
 @pytest.fixture(scope="module")

@@ -62,6 +62,8 @@ LOCK_WITHIN_US = 300_000
 """A lock needs one detection window (70 ms) plus a few retries."""
 FIRST_POSE_MAX_M = 0.05
 """Initial pose (after capture onto the ring edges) against ground truth."""
+HAND_HELD_ATE_M = 0.01
+"""What the hand-held tracker promises (README: ATE <= 1 cm)."""
 TRACKED_RMS_M = 0.02
 TRACKED_P95_M = 0.03
 """At about 4 px per cell a pixel is 2-3 mm on the marker; a re-lock may start a few cm off and
@@ -477,15 +479,18 @@ def test_a_camera_drifting_too_slowly_for_a_flow_is_not_locked_on_its_smeared_im
     assert any(c.state == TRACKING for c in drifting["changes"]), dict(
         drifting["stats"].detection_failures
     )
-    assert drifting["err"].max() <= WRONG_LOCK_M
+    assert drifting["err"].max() <= FIRST_POSE_MAX_M
 
 
 def _assert_locked_right_within_100_ms(run: dict) -> None:
+    """Locked within 100 ms, no pose further off than a first pose may be, and tracked to the
+    hand-held promise of 1 cm (the median: a re-lock may start a few cm off)."""
     stats = run["stats"]
     assert stats.lock_times_us, dict(stats.detection_failures)
     assert stats.lock_times_us[0] - stats.first_event_us <= 100_000
     assert run["err"][0] <= FIRST_POSE_MAX_M
-    assert run["err"].max() <= WRONG_LOCK_M
+    assert run["err"].max() <= FIRST_POSE_MAX_M
+    assert np.median(run["err"]) <= HAND_HELD_ATE_M
 
 
 def test_a_slowly_drifting_camera_locks_on_its_burst_square_within_100_ms(drifting):
@@ -703,14 +708,17 @@ def test_a_verified_frame_settles_a_lock_under_motion_whatever_its_fit_ratio(slo
     assert any("lie on its edges" in r for r in never["stats"].detection_failures)
 
 
-def test_a_still_lock_needs_no_probation():
-    """A still detection reads the locator reliably: its lock stands without a verified frame
-    (a screen whose frames do not verify still gives the pose)."""
+def test_a_still_lock_whose_frames_never_verify_is_dropped_soon():
+    """A still camera reads a right lock's frames cleanly from the first: frames that keep
+    failing their check mean a wrong lock, which goes within ``still_probation_us`` of frames
+    (its poses all tentative), and detection resumes."""
     scene = replace(hand_held_scene(0.5, 0), motion=StaticMotion(distance_m=0.6))
     rec = simulate(scene, duration_s=0.4, chunk_us=10_000)
-    run = _unverifiable(rec, list(rec), probation_frames=1)
-    assert [c.state for c in run["changes"]] == [TRACKING]
-    assert sum(f.accepted for f in run["frames"]) > 1
+    run = _unverifiable(rec, list(rec), probation_frames=20)
+    changes = run["changes"]
+    assert [c.state for c in changes[:2]] == [TRACKING, DETECTING]
+    assert changes[1].reason == "no frame passed its check since the lock"
+    assert changes[1].t_us - changes[0].t_us <= 110_000
 
 
 def test_the_probation_needs_at_least_one_frame():

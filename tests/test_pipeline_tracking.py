@@ -24,7 +24,7 @@ from eventocc.receiver.pipeline.receiver import (
     PoseEstimate,
     Receiver,
 )
-from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth, decode_events
 from eventocc.receiver.pipeline.tracker import EdgeTracker, _nearest_edge
 from eventocc.receiver.poses import invert, make_pose, write_tum
 from eventocc.receiver.sim import Display, Scene, SensorModel, TumMotion, simulate
@@ -254,12 +254,8 @@ def _run(tmp_path, keys, duration_s: float):
         sensor=SensorModel.preset("gen4-indoor"),
         seed=0,
     )
-    rx = Receiver(ReceiverConfig(CAMERA))
-    log = DecodeLog(rx, FrameTruth(scene.encoder, 60.0))
     rec = simulate(scene, duration_s=duration_s, chunk_us=10_000)
-    for chunk in rec:
-        log.add(rx.push(chunk))
-    log.add(rx.finish())
+    log = decode_events(Receiver(ReceiverConfig(CAMERA)), rec, FrameTruth(scene.encoder, 60.0))
     return log, rec
 
 
@@ -335,9 +331,6 @@ def test_tracking_follows_a_sway_after_a_still_lock(tmp_path):
     assert ate_m(log) < 0.01  # the paper's hand-held ATE is 1.4-2.0 cm
     assert log.receiver.stats.losses == 0
     # The tracker's own updates, unsmoothed, jitter between tilt and sideways shift.
-    raw = DecodeLog(Receiver(ReceiverConfig(CAMERA, pose_smoothing_us=0)))
-    for chunk in rec:
-        raw.add(raw.receiver.push(chunk))
-    raw.add(raw.receiver.finish())
+    raw = decode_events(Receiver(ReceiverConfig(CAMERA, pose_smoothing_us=0)), rec)
     assert len(raw.pose_t) == len(log.pose_t)
     assert ate_m(log) < 0.8 * ate_m(raw)

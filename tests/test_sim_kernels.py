@@ -24,7 +24,7 @@ from eventocc.receiver.sim import (
     simulate,
 )
 from eventocc.receiver.sim.motion import image_box
-from eventocc.receiver.sim.sensor import BackgroundNoise, to_events
+from eventocc.receiver.sim.sensor import BackgroundNoise, _readout_cap, to_events
 
 CAM = CameraModel.paper().resized(160, 120)
 MESSAGE = bytes(range(256))
@@ -145,3 +145,22 @@ def test_still_pixels_skip_resting_refreshes_with_the_events_of_rendering_every_
     every = concat(simulate(scene, 0.2))
     assert len(skipping) > 1000
     assert np.array_equal(skipping, every)
+
+
+def _readout_cap_by_sorting(t_us: np.ndarray, per_ms: float, rng) -> np.ndarray:
+    """The readout cap's definition: sort each millisecond's events by a uniform random key and
+    keep the first ``per_ms`` (ranks below it)."""
+    ms = t_us // 1000
+    order = np.lexsort((rng.random(len(ms)), ms))
+    first = np.searchsorted(ms[order], ms[order], side="left")
+    keep = np.zeros(len(ms), bool)
+    keep[order[np.arange(len(ms)) - first < per_ms]] = True
+    return keep
+
+
+@pytest.mark.parametrize(("n", "per_ms"), [(1000, 3.5), (200_000, 1000.0), (50, 1e6), (1, 1.0)])
+def test_the_readout_cap_keeps_the_events_that_sorting_by_random_keys_keeps(n, per_ms):
+    t = np.random.default_rng(n).integers(5_000_000, 5_020_000, n)
+    kept = _readout_cap(t, per_ms, np.random.default_rng(7))
+    assert np.array_equal(kept, _readout_cap_by_sorting(t, per_ms, np.random.default_rng(7)))
+    assert np.bincount(t[kept] // 1000).max() <= np.ceil(per_ms)

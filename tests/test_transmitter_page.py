@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+import time
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -99,3 +100,35 @@ def test_transmitter_draws_each_frame_pixel_exact_in_order(
     assert status["message_id"] == message["id"]
     assert status["cell_px"] == CELL_PX
     assert status["frame_index"] >= CAPTURED
+
+
+def test_an_id_the_server_does_not_hold_plays_nothing_and_says_so(base_url: str, browser) -> None:
+    post_message(base_url, "name=other.txt&profile=robust&cells=16")
+    page = browser.new_page()
+    page.goto(f"{base_url}/transmitter?id=0123456789ab")
+    page.wait_for_selector("#error:not([hidden])")
+    assert "no message 0123456789ab on this server" in page.text_content("#error")
+    page.click("#acknowledge")
+    assert page.is_disabled("#play"), "nothing to play"
+    assert page.evaluate("window.eventocc.playing") is False
+    page.close()
+
+
+def test_a_closed_page_says_at_once_that_it_no_longer_plays(base_url: str, browser) -> None:
+    """A camera watching the screen must not take a closed page for one still playing."""
+    message = post_message(base_url, "name=closing.txt&profile=robust&cells=16")
+    page = browser.new_page()
+    page.goto(f"{base_url}/transmitter?id={message['id']}")
+    page.click("#acknowledge")
+    page.wait_for_function("!document.querySelector('#play').disabled")
+    page.click("#play")
+    page.wait_for_function("window.eventocc.frameIndex > 10")
+    page.close()
+    deadline = time.monotonic() + 0.8  # under the page's one-second report interval
+    while time.monotonic() < deadline:
+        with urllib.request.urlopen(f"{base_url}/api/transmitter/status") as response:
+            status = json.load(response)
+        if not status["playing"]:
+            break
+        time.sleep(0.05)
+    assert status["message_id"] == message["id"] and not status["playing"]

@@ -43,7 +43,8 @@ def test_the_wheel_holds_only_the_package(wheel):
     names = zipfile.ZipFile(wheel).namelist()
     tops = {name.split("/")[0] for name in names}
     assert {t for t in tops if not t.endswith(".dist-info")} == {"eventocc"}
-    for page in ("transmitter.html", "transmitter.js", "dashboard.html", "dashboard.js"):
+    pages = ("transmitter.html", "transmitter.js", "dashboard.html", "dashboard.js", "favicon.svg")
+    for page in pages:
         assert f"eventocc/web/{page}" in names
     sources = {
         f"eventocc/{path.relative_to(ROOT).as_posix()}"

@@ -1,6 +1,9 @@
 // The live dashboard: one websocket (/ws/dashboard) feeds a small state object; a
 // requestAnimationFrame loop redraws only what changed. Reconnects with backoff and says so.
 
+import { describeCells, describeSight, drawCells } from "./cells_view.js";
+import { drawScene, enableOrbit, rollPitchYaw } from "./pose_view.js";
+
 const MARKER_SIDE_M = 0.272; // the receiver's default marker size, for scale in the 2D views
 const TRAIL = 600; // poses kept for the trajectory (6 s at the 100 Hz the daemon publishes)
 const SERIES = 120; // one sample per second in each sparkline
@@ -8,13 +11,17 @@ const RECONNECT_S = [0.5, 8];
 const GOODPUT_WINDOW_MS = 60_000; // messages completed: as the server's /metrics gauge
 const VERIFIED_WINDOW_MS = 10_000; // verified frame payload: the link's live rate
 const KEEPING_UP = 0.95; // source speed (x real time) below which the source is behind
+const PROGRESS_STALE_MS = 10_000; // a stream's progress not reported for this long is dropped
+const LAG_WINDOW_MS = 10_000; // poses whose arrival lag the pose latency is measured over
 
 const $ = (id) => document.getElementById(id);
 
 const state = {
-  poses: [], // {t, p: [x, y, z], axis: [x, y, z]}, newest last
+  poses: [], // {t, p: [x, y, z], q: [x, y, z, w], axis: [x, y, z], verified}, newest last
+  arrivals: [], // [ms, lag ms] per pose: its arrival less its event time (another clock)
+  cells: null, // the latest read frame's cells report
   posesThisSecond: 0,
-  progress: new Map(), // stream_id -> {report, firstSeen: [ms, held]}
+  progress: new Map(), // "receiver:stream_id" -> {report, firstSeen: [ms, held], seen: ms}
   receptions: new Map(), // id -> reception
   recentBits: [], // [ms, bits] of receptions this page saw arrive, for goodput
   verifiedBits: [], // [ms, bits] of frame payload that passed its CRC, for goodput
@@ -65,10 +72,12 @@ async function loadReceptions() {
 // --- updates ---------------------------------------------------------------------------------
 const handlers = {
   pose(u) {
-    state.poses.push({ t: u.t_us, p: u.position, axis: opticalAxis(u.quaternion_xyzw) });
-    if (state.poses.length > TRAIL) state.poses.splice(0, state.poses.length - TRAIL);
-    state.posesThisSecond += 1;
+    trackPose(u);
     state.dirty.add("pose");
+  },
+  cells(u) {
+    state.cells = u;
+    state.dirty.add("cells");
   },
   frame(u) {
     state.lastFrame = u;
@@ -80,22 +89,20 @@ const handlers = {
     state.dirty.add("state");
   },
   progress(u) {
-    const known = state.progress.get(u.stream_id);
-    const firstSeen = known ? known.firstSeen : [performance.now(), u.symbols_held];
-    state.progress.set(u.stream_id, { report: u, firstSeen });
+    trackProgress(u);
     state.dirty.add("messages");
   },
   reception(u) {
     state.receptions.set(u.id, u);
     state.recentBits.push([performance.now(), 8 * u.size]);
-    for (const [id, p] of state.progress) if (p.report.name === u.name) state.progress.delete(id);
+    endProgress(u);
     state.dirty.add("messages");
   },
   surface(u) {
     drawSurface(u);
   },
   receivers(u) {
-    const ids = u.receivers.map((r) => r.receiver_id);
+    const ids = u.receivers.map((r) => r.receiver);
     $("receivers").textContent = ids.length ? `receivers: ${ids.join(", ")}` : "no receiver connected";
   },
   transmitter(u) {
@@ -110,6 +117,74 @@ function handle(update) {
   handlers[update.type]?.(update);
 }
 
+// --- poses -----------------------------------------------------------------------------------
+function trackPose(u) {
+  const q = u.quaternion_xyzw;
+  state.poses.push({ t: u.t_us, p: u.position, q, axis: opticalAxis(q), verified: u.verified ?? false });
+  if (state.poses.length > TRAIL) state.poses.splice(0, state.poses.length - TRAIL);
+  state.posesThisSecond += 1;
+  // Event time runs on the receiver's clock: only its lag beyond the quickest recent pose says
+  // how late a pose arrives (what the network and the server add, and the receiver's backlog).
+  const now = performance.now();
+  state.arrivals.push([now, now - u.t_us / 1000]);
+  while (state.arrivals[0][0] < now - LAG_WINDOW_MS) state.arrivals.shift();
+}
+
+function poseLagMs() {
+  const lags = state.arrivals.map(([, lag]) => lag);
+  return lags.length ? lags.at(-1) - Math.min(...lags) : null;
+}
+
+function drawPose3d() {
+  drawScene($("scene-view"), state.poses, MARKER_SIDE_M);
+  const last = state.poses.at(-1);
+  if (!last) return;
+  const [roll, pitch, yaw] = rollPitchYaw(last.q);
+  const deg = (v) => `${v >= 0 ? "+" : ""}${v.toFixed(1)}°`;
+  $("orientation").textContent = `roll ${deg(roll)}  pitch ${deg(pitch)}  yaw ${deg(yaw)}`;
+  $("quaternion").textContent = `q (x y z w) ${last.q.map((v) => v.toFixed(3)).join(" ")}`;
+  const status = $("pose-status");
+  status.dataset.state = last.verified ? "verified" : "tentative";
+  status.textContent = last.verified ? "verified" : "tentative: no frame has proven the lock yet";
+  const lag = poseLagMs();
+  $("pose-lag").textContent = lag == null ? "–" : `${lag.toFixed(0)} ms behind the quickest pose of the last 10 s`;
+}
+
+function drawCellsView() {
+  const corrected = drawCells($("cells-view"), state.cells);
+  $("cells-caption").textContent = describeCells(state.cells, corrected);
+}
+
+function drawSight() {
+  const sight = describeSight(state.health);
+  const dd = $("sight");
+  dd.textContent = sight.text;
+  dd.dataset.state = sight.warn ? "behind" : "live";
+}
+
+// --- message progress ------------------------------------------------------------------------
+// Keyed by receiver and stream id: a stream's progress has no name until its metadata decoded,
+// and two receivers may read the same stream.
+const progressKey = (u) => `${u.receiver}:${u.stream_id}`;
+
+function trackProgress(u) {
+  const known = state.progress.get(progressKey(u));
+  const firstSeen = known ? known.firstSeen : [performance.now(), u.symbols_held];
+  state.progress.set(progressKey(u), { report: u, firstSeen, seen: performance.now() });
+}
+
+function endProgress(reception) {
+  // The server names the stream a finished message came in (receptions loaded over REST do not:
+  // they finished before this page opened).
+  if (reception.stream_id != null) state.progress.delete(progressKey(reception));
+}
+
+function dropStaleProgress() {
+  // A stream the receiver stopped reporting (the transmitter moved on to another message).
+  const since = performance.now() - PROGRESS_STALE_MS;
+  for (const [key, p] of state.progress) if (p.seen < since) state.progress.delete(key);
+}
+
 function opticalAxis([x, y, z, w]) {
   // Third column of the rotation matrix: where the camera looks, in the marker frame.
   return [2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)];
@@ -117,6 +192,7 @@ function opticalAxis([x, y, z, w]) {
 
 // --- drawing ---------------------------------------------------------------------------------
 function drawViews() {
+  drawPose3d();
   // top: (x, z) with z growing down the canvas; side: (z, y), y down.
   drawView($("top-view"), (v) => [v[0], v[2]], [[0, 0], [MARKER_SIDE_M, 0]]);
   drawView($("side-view"), (v) => [v[2], v[1]], [[0, 0], [0, MARKER_SIDE_M]]);
@@ -172,6 +248,7 @@ function line(ctx, a, b) {
 }
 
 function drawMessages() {
+  dropStaleProgress();
   const progress = $("progress");
   progress.replaceChildren(
     ...[...state.progress.values()].map(({ report: r, firstSeen: [t0, held0] }) => {
@@ -200,9 +277,14 @@ function drawMessages() {
       link.textContent = r.name || r.id;
       link.download = r.name || r.id;
       const facts = document.createElement("span");
-      const speed = r.goodput_bps ? `, ${formatRate(r.goodput_bps, "bit/s")}` : "";
-      facts.className = r.message_id ? "verified" : "muted";
-      facts.textContent = `${r.size} B, sha256 ${r.message_id ? "matches upload" : "ok"}${speed}`;
+      // The message's own rate, not the link's goodput (every verified frame's payload, repair
+      // symbols included): its bits over the time from its first symbol to its last.
+      const speed = r.goodput_bps ? `, message at ${formatRate(r.goodput_bps, "bit/s")}` : "";
+      // Matching an upload or the sender's in-band sha256 checks the bytes; paper sends none.
+      const check = r.message_id ? "sha256 matches upload" : r.verified ? "sha256 matches sender's" : "unchecked";
+      facts.className = r.message_id || r.verified ? "verified" : "muted";
+      facts.textContent = `${r.size} B, ${check}${speed}`;
+      facts.title = "the message's bits over the time from its first symbol to its last";
       li.append(link, facts);
       return li;
     }),
@@ -212,16 +294,25 @@ function drawMessages() {
 function drawState() {
   const h = state.health;
   if (h) {
-    $("tracking-state").textContent = h.state;
     $("cpu-load").textContent = `${(100 * h.cpu_load).toFixed(0)} % of a core`;
     showSourceSpeed(h.source_speed);
+    showWaiting(h);
     showCamera(h.camera);
+    drawSight();
   }
   const f = state.lastFrame;
   if (f) {
     $("frame-stats").textContent =
       `#${f.frame_index}, ${f.bits_read} bits, confidence ${f.confidence_mean.toFixed(2)}`;
   }
+}
+
+function showWaiting(h) {
+  // A source with nothing to show (the transmitter page paused or closed) says why: the
+  // receiver is idle, not tracking with its last pose frozen.
+  $("tracking-state").textContent = h.waiting ? `idle: ${h.waiting}` : h.state;
+  $("tracking-state").dataset.state = h.waiting ? "waiting" : h.state;
+  if (h.waiting) $("source-speed").textContent = "no events: waiting for the screen";
 }
 
 function showSourceSpeed(speed) {
@@ -287,6 +378,7 @@ function sample() {
   push("poses", state.posesThisSecond);
   state.posesThisSecond = 0;
   state.dirty.add("charts");
+  if (state.progress.size) state.dirty.add("messages"); // to drop the stale
 }
 
 function drawCharts() {
@@ -328,7 +420,13 @@ function formatRate(v, unit) {
   return `${v.toFixed(0)} ${unit}`;
 }
 
-const painters = { pose: drawViews, messages: drawMessages, state: drawState, charts: drawCharts };
+const painters = {
+  pose: drawViews,
+  messages: drawMessages,
+  state: drawState,
+  charts: drawCharts,
+  cells: drawCellsView,
+};
 
 function frame() {
   for (const part of state.dirty) painters[part]();
@@ -337,5 +435,6 @@ function frame() {
 }
 
 connect();
+enableOrbit($("scene-view"), () => state.dirty.add("pose"));
 setInterval(sample, 1000);
 requestAnimationFrame(frame);

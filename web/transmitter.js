@@ -252,6 +252,7 @@ function setPlaying(playing) {
   if (playing) document.activeElement?.blur(); // let the control panel fade out
   document.body.classList.toggle("playing", playing);
   $("play").textContent = playing ? "Pause" : "Start";
+  reportStatus(); // at once: a camera watching this screen must not wait for the next report
   updateOverlay();
 }
 
@@ -304,6 +305,7 @@ async function reportStatus() {
   try {
     await api("/api/transmitter/status", {
       method: "POST",
+      keepalive: true, // sent even as the page closes (closing hides it, which pauses it)
       headers: { "Content-Type": "application/json" },
       body: JSON.stringify(report),
     });
@@ -328,8 +330,8 @@ function showFacts(m) {
     $("facts").textContent = "Upload a message to start.";
     return;
   }
-  const loop = m.frames_per_loop ? `${m.frames_per_loop} frames per loop` : "endless stream";
   const kbps = (m.bit_rate_60hz / 1000).toFixed(1);
+  const loop = `${m.frames_per_loop} frames per loop`;
   $("facts").textContent = `${m.bits_per_frame} bits/frame · ${kbps} kbit/s at 60 Hz · ${loop}`;
 }
 
@@ -337,8 +339,11 @@ async function loadMessages(selectId) {
   ({ messages } = await (await api("/api/messages")).json());
   const select = $("message");
   select.replaceChildren(...messages.map((m) => new Option(describe(m), m.id)));
-  const chosen = messages.find((m) => m.id === selectId) ?? messages[0];
-  if (chosen) select.value = chosen.id;
+  // No id: the newest. An id the server does not hold plays nothing, rather than another
+  // message the camera would then be taken to receive.
+  const chosen = selectId ? messages.find((m) => m.id === selectId) : messages[0];
+  select.value = chosen?.id ?? "";
+  if (selectId && !chosen) showError(`no message ${selectId} on this server: choose one above`);
   return chosen;
 }
 

@@ -52,7 +52,7 @@ class SequenceResult:
     ate_cm: float
     ber: float | None
     decodable: bool
-    """At least one verified message completed (FEC recovered the data)."""
+    """A message completed and matches the one sent (FEC recovered the data)."""
     poses: int
     frames_read: int
     frames_seen: int
@@ -83,7 +83,7 @@ def score(seed: int, flow: float, run: EventRun, duration_s: float) -> SequenceR
         err = pose_errors(run.pose_t_us, run.poses, run.truth, delta_us=RPE_DELTA_US)
         rot, trans, ate = err.rpe_rot_rmse_deg, err.rpe_trans_rmse_m * 100, err.ate_rmse_m * 100
     rep = run.report
-    decodable = any(m["verified"] for m in rep["messages"])
+    decodable = any(m["matches_sent"] for m in rep["messages"])
     return SequenceResult(
         seed,
         flow,

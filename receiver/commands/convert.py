@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from tqdm import tqdm
-
+from eventocc.receiver.commands import add_command, read_with_progress
 from eventocc.receiver.io import READ_FORMATS, WRITE_FORMATS, read_events, write_events
 
 
@@ -14,32 +13,19 @@ def run(args: argparse.Namespace) -> int:
         width = args.width or stream.width
         height = args.height or stream.height
         if not width or not height:
-            raise SystemExit(
+            raise ValueError(
                 f"{args.input} does not state its sensor size; pass --width and --height"
             )
-        with tqdm(
-            total=stream.size,
-            unit="B",
-            unit_scale=True,
-            disable=args.quiet or None,
-            desc="convert",
-            leave=False,
-        ) as bar:
-
-            def chunks():
-                for chunk in stream:
-                    bar.update(stream.position - bar.n)
-                    yield chunk
-
-            count = write_events(
-                args.output, chunks(), format=args.to_format, width=width, height=height
-            )
+        chunks = read_with_progress(stream, desc="convert", quiet=args.quiet)
+        count = write_events(args.output, chunks, format=args.to_format, width=width, height=height)
     print(f"wrote {count:,} events to {args.output}")
     return 0
 
 
 def add_parser(subparsers) -> None:
-    p = subparsers.add_parser("convert", help="convert an event file to another format")
+    p = add_command(
+        subparsers, "convert", help="convert an event file to another format", doc=__doc__
+    )
     p.add_argument("input", help="event file to read")
     p.add_argument("output", help="file to write (format from --to or the extension)")
     p.add_argument(
@@ -53,5 +39,4 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--width", type=int, help="sensor width, if the input does not say")
     p.add_argument("--height", type=int, help="sensor height, if the input does not say")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -5,13 +5,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
+from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
+from eventocc.receiver.commands import add_command, read_with_progress
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.receiver import Receiver
-from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth
+from eventocc.receiver.pipeline.report import decode_events
 
 log = logging.getLogger(__name__)
 
@@ -28,9 +31,7 @@ DEFAULTS = {
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "decode", help="decode the marker in an event recording", description=__doc__
-    )
+    p = add_command(sub, "decode", help="decode the marker in an event recording", doc=__doc__)
     p.add_argument("recording", type=Path, help="event file (RAW, DAT, AEDAT4, bag, npz, h5, ...)")
     p.add_argument(
         "--calibration", type=Path, help="camera calibration file (default: the camera of --scene)"
@@ -97,21 +98,12 @@ def _camera(args: argparse.Namespace, scene):
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        return _run(args)
-    except (OSError, ValueError) as exc:  # bad files and options: say what, no traceback
-        print(f"eventocc-receiver decode: error: {exc}", file=sys.stderr)
-        return 2
-
-
-def _run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from eventocc.receiver.io import read_events
 
     scene = None
     if args.scene is not None:
         from eventocc.receiver.sim import Scene
+        from eventocc.receiver.sim.truth import SceneTruth
 
         scene = Scene.from_dict(json.loads(args.scene.read_text()))
     _link_settings(args, scene)
@@ -133,23 +125,23 @@ def _run(args: argparse.Namespace) -> int:
     receiver = Receiver(config, message_size=args.message_size)
     truth = None
     if scene is not None:
-        truth = FrameTruth(scene.encoder, scene.display.refresh_hz, scene.start_refresh)
-    decoded = DecodeLog(receiver, truth)
-    with tqdm(total=stream.size or None, unit="B", unit_scale=True, desc="decode") as bar:
-        for chunk in stream:
-            if len(chunk) and (
-                chunk["x"].max() >= camera.width or chunk["y"].max() >= camera.height
-            ):
-                raise ValueError(
-                    f"events beyond the calibrated {camera.width}x{camera.height} "
-                    "sensor; pass the matching --calibration"
-                )
-            decoded.add(receiver.push(chunk))
-            bar.update(stream.position - bar.n)
-    decoded.add(receiver.finish())
+        truth = SceneTruth(scene)
+    chunks = _checked(read_with_progress(stream, desc="decode", quiet=args.quiet), camera)
+    decoded = decode_events(receiver, chunks, truth)
     report = decoded.write(args.out)
     _summarise(report)
     return 0 if report["messages"] else 1
+
+
+def _checked(chunks: Iterator[np.ndarray], camera) -> Iterator[np.ndarray]:
+    """The chunks, each checked against the calibrated sensor."""
+    for chunk in chunks:
+        if len(chunk) and (chunk["x"].max() >= camera.width or chunk["y"].max() >= camera.height):
+            raise ValueError(
+                f"events beyond the calibrated {camera.width}x{camera.height} "
+                "sensor; pass the matching --calibration"
+            )
+        yield chunk
 
 
 def _summarise(report: dict) -> None:
@@ -164,7 +156,17 @@ def _summarise(report: dict) -> None:
     if report["ber"] is not None:
         print(f"BER before FEC {report['ber']:.2e}")
     for m in report["messages"]:
-        print(f"message {m['name'] or '(unnamed)'}: {m['size']} bytes, sha256 {m['sha256']}")
+        if m["check"] == "unchecked":
+            check = "unchecked: the paper profile sends no checksum"
+        else:
+            check = "verified" if m["verified"] else "does NOT match the sender's sha256"
+        if "matches_sent" in m:
+            check += (
+                "; matches the scene's message" if m["matches_sent"] else "; NOT the message sent"
+            )
+        print(
+            f"message {m['name'] or '(unnamed)'}: {m['size']} bytes, sha256 {m['sha256']} ({check})"
+        )
     if report["realtime_factor"] is not None:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in sorted(report["cpu_s"].items()))
         print(f"real-time factor {report['realtime_factor']:.2f} (CPU s per stage: {stages})")

@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 
-from tqdm import tqdm
-
+from eventocc.receiver.commands import add_command, read_with_progress
 from eventocc.receiver.io import READ_FORMATS, EventStream, read_events
 
 
@@ -50,26 +49,15 @@ def summarize(stream: EventStream, progress: bool = False) -> EventFileSummary:
     """Count and time range of a stream, read to its end."""
     count = positive = max_x = max_y = 0
     t_first = t_last = None
-    with tqdm(
-        total=stream.size,
-        unit="B",
-        unit_scale=True,
-        disable=not progress or None,
-        desc=stream.path.name,
-        leave=False,
-    ) as bar:
-        for chunk in stream:
-            bar.update(stream.position - bar.n)
-            if not len(chunk):
-                continue
-            t_first = (
-                int(chunk["t"].min()) if t_first is None else min(t_first, int(chunk["t"].min()))
-            )
-            t_last = int(chunk["t"].max()) if t_last is None else max(t_last, int(chunk["t"].max()))
-            count += len(chunk)
-            positive += int((chunk["p"] > 0).sum())
-            max_x = max(max_x, int(chunk["x"].max()))
-            max_y = max(max_y, int(chunk["y"].max()))
+    for chunk in read_with_progress(stream, desc=stream.path.name, quiet=not progress):
+        if not len(chunk):
+            continue
+        t_first = int(chunk["t"].min()) if t_first is None else min(t_first, int(chunk["t"].min()))
+        t_last = int(chunk["t"].max()) if t_last is None else max(t_last, int(chunk["t"].max()))
+        count += len(chunk)
+        positive += int((chunk["p"] > 0).sum())
+        max_x = max(max_x, int(chunk["x"].max()))
+        max_y = max(max_y, int(chunk["y"].max()))
     return EventFileSummary(
         stream.format, stream.width, stream.height, count, t_first, t_last, positive, max_x, max_y
     )
@@ -84,8 +72,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(subparsers) -> None:
-    p = subparsers.add_parser("info", help="count, duration, rate and geometry of an event file")
+    p = add_command(
+        subparsers,
+        "info",
+        help="count, duration, rate and geometry of an event file",
+        doc=__doc__,
+    )
     p.add_argument("file", help="event file (RAW, DAT, AEDAT4, bag, text, npz, HDF5)")
     p.add_argument("--format", choices=READ_FORMATS, help="override format detection")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

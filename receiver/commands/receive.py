@@ -7,9 +7,11 @@ is away, reports that matter (poses, messages) wait in the output folder's spool
 when it is back. Ctrl-C stops it.
 
 Sources: ``sim:`` (default) the virtual event camera watching what the server's transmitter
-plays; ``file:PATH`` or ``PATH`` a recording; ``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live
-camera through an optional backend; ``nd-replay:PATH`` a recording replayed as a USB camera
-through the neuromorphic-drivers path (its pace, USB ring and backlog).
+plays (``sim:MESSAGE_ID``: that message until a transmitter page reports, else the newest
+upload; a paused or closed page shows it nothing); ``file:PATH`` or ``PATH`` a recording;
+``nd:``, ``metavision:[SERIAL]``, ``dv:`` a live camera through an optional backend;
+``nd-replay:PATH`` a recording replayed as a USB camera through the neuromorphic-drivers path
+(its pace, USB ring and backlog).
 
 A live camera's own event-rate limiter (on by default, see ``--max-event-rate``) and biases are
 set from ``--camera-config FILE`` and the options below; its temperature and light reading,
@@ -32,6 +34,7 @@ from pathlib import Path
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES, LinkSettings
 from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.commands import add_command
 from eventocc.receiver.live.controls import add_camera_arguments, camera_settings
 from eventocc.receiver.live.daemon import (
     Daemon,
@@ -39,10 +42,9 @@ from eventocc.receiver.live.daemon import (
     LinkFollower,
     OutputFolder,
     Screen,
-    describe,
 )
 from eventocc.receiver.live.screen import ScreenWatch, TransmitterClient
-from eventocc.receiver.live.sources import EventSource, RecordingSource, SourceError
+from eventocc.receiver.live.sources import EventSource, RecordingSource
 from eventocc.receiver.live.uri import open_source
 from eventocc.receiver.live.virtual_camera import DEFAULT_MOTION, MOTIONS, VirtualCamera
 
@@ -53,17 +55,14 @@ DEFAULT_LINK = LinkSettings(DEFAULT_PROFILE, 16)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "receive",
-        help="run the live receiver daemon (events -> server)",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = add_command(
+        sub, "receive", help="run the live receiver daemon (events -> server)", doc=__doc__
     )
     p.add_argument(
         "--source",
         default="sim:",
-        help="sim: | file:PATH | PATH | nd: | metavision:[SERIAL] | dv: | nd-replay:PATH  "
-        "(default: sim:)",
+        help="sim:[MESSAGE_ID] | file:PATH | PATH | nd: | metavision:[SERIAL] | dv: | "
+        "nd-replay:PATH (default: sim:)",
     )
     p.add_argument(
         "--pace",
@@ -110,13 +109,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--token",
         default=os.environ.get("EVENTOCC_TOKEN"),
-        help="the server's token (env EVENTOCC_TOKEN), if it has one",
+        help="the server's token, if it has one (default: env EVENTOCC_TOKEN)",
     )
     p.add_argument(
         "--out",
         type=Path,
         default=Path("out/receiver"),
-        help="output folder: trajectory.tum, messages/, spool.db (default out/receiver)",
+        help="output folder: trajectory.tum (verified poses), trajectory_all.tum, messages/, "
+        "spool.db (default out/receiver)",
     )
     p.add_argument(
         "--pose-hz",
@@ -126,14 +126,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     add_camera_arguments(p)
     p.set_defaults(func=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    try:
-        return _run(args)
-    except (SourceError, OSError, ValueError) as error:
-        print(f"eventocc-receiver receive: error: {error}", file=sys.stderr)
-        return 2
 
 
 def websocket_url(http_url: str) -> str:
@@ -159,14 +151,14 @@ def _screen(source: EventSource, server_url: str) -> tuple[Screen | None, LinkSe
     camera knows what it simulates; a live camera is taken to watch the server's transmitter
     page; a recording shows whatever it recorded (the defaults, unless pinned)."""
     if isinstance(source, VirtualCamera):
-        return source, source.server.link_settings()
+        return source, source.server.link_settings(DEFAULT_LINK)
     if isinstance(source, RecordingSource):
         return None, DEFAULT_LINK
     watch = ScreenWatch(TransmitterClient(server_url), DEFAULT_LINK).start()
     return watch, watch.link
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     from eventocc.receiver.live.publisher import Publisher
     from eventocc.receiver.live.spool import Spool
     from eventocc.receiver.pipeline.config import LIVE_CPU_SHARE, DetectorParams, ReceiverConfig
@@ -223,7 +215,7 @@ def _run(args: argparse.Namespace) -> int:
         "receiver %s: %s, %s -> %s; output in %s",
         spool.receiver_id,
         args.source,
-        describe(follower.receiving),
+        follower.receiving,
         args.server,
         output.root,
     )

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 from eventocc.occ.stream import StreamEncoder
+from eventocc.receiver.commands import add_command
 from eventocc.receiver.sim import (
     HandHeldMotion,
     Optics,
@@ -26,13 +27,15 @@ log = logging.getLogger(__name__)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "simulate", help="simulate an event camera watching the marker", description=__doc__
+    p = add_command(
+        sub, "simulate", help="simulate an event camera watching the marker", doc=__doc__
     )
     p.add_argument("--message", type=Path, required=True, help="file whose bytes are sent")
-    p.add_argument("--profile", choices=PROFILE_NAMES, default=DEFAULT_PROFILE)
+    p.add_argument("--profile", choices=PROFILE_NAMES, default=DEFAULT_PROFILE, help="link profile")
     p.add_argument("--cells", type=int, default=16, help="payload cells across (N)")
-    p.add_argument("--motion", choices=("static", "handheld"), default="static")
+    p.add_argument(
+        "--motion", choices=("static", "handheld"), default="static", help="the camera's motion"
+    )
     p.add_argument("--trajectory", type=Path, help="TUM file of T_world_cam (overrides --motion)")
     p.add_argument(
         "--distance", type=float, help="metres to the marker (default 1.25 static, 0.6 hand-held)"
@@ -51,10 +54,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "camera (overrides --marker-size)",
     )
     p.add_argument("--duration", type=float, default=5.0, help="seconds")
-    p.add_argument("--preset", choices=tuple(PRESETS), default="gen4-indoor")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="gen4-indoor", help="sensor model")
     p.add_argument("--lux", type=float, help="ambient light (default: the preset's)")
-    p.add_argument("--start-refresh", type=int, default=0)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--start-refresh",
+        type=int,
+        default=0,
+        help="the transmitter's refresh index at the recording's start",
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, help="random seed of the sensor noise and the hand's path"
+    )
     p.add_argument(
         "--events", default="events.raw", help="events file name; its extension picks the format"
     )

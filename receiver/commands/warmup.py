@@ -17,21 +17,26 @@ from pathlib import Path
 
 import numpy as np
 
+from eventocc.receiver.commands import add_command
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
+    parser = add_command(
+        subparsers,
         "warmup",
         help="compile the kernels once (an install does), so later starts load them at once",
-        description=__doc__.splitlines()[0],
+        doc=__doc__,
     )
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    print("compiling the receiver's kernels (once per install; about a minute on one core)")
+    if not args.quiet:
+        print("compiling the receiver's kernels (once per install; about a minute on one core)")
     warm_up()
-    print(f"compiled in {time.perf_counter() - started:.0f} s")
+    if not args.quiet:
+        print(f"compiled in {time.perf_counter() - started:.0f} s")
     return 0
 
 
@@ -42,6 +47,7 @@ def warm_up() -> None:
     from eventocc.receiver.io import read_events, write_events
     from eventocc.receiver.pipeline.config import ReceiverConfig
     from eventocc.receiver.pipeline.receiver import Receiver
+    from eventocc.receiver.pipeline.report import decode_events
     from eventocc.receiver.sim import HandHeldMotion, Scene, StaticMotion, simulate
 
     camera = CameraModel.paper().binned(320, 180)
@@ -51,9 +57,7 @@ def warm_up() -> None:
             scene = Scene(encoder=encoder, camera=camera, motion=motion, seed=0)
             receiver = Receiver(ReceiverConfig(camera, cells=16, profile=profile))
             chunks = list(simulate(scene, duration_s=0.15, chunk_us=10_000))
-            for chunk in chunks:
-                receiver.push(chunk)
-            receiver.finish()
+            decode_events(receiver, chunks)
     rs = ReedSolomon(255, 223)
     word = rs.encode(np.zeros((1, 223), np.uint8))
     word[0, :3] ^= 1

@@ -8,6 +8,12 @@ npz, hdf5, text.
 The format is found from the file's content first (RAW/DAT header, AEDAT4, bag, HDF5, zip or
 SQLite magic), then from its extension. A file whose content says one format and extension
 another is read by its content, with a logged warning. ``format=`` overrides both.
+
+Whatever a file holds, reading it ends in events or an ``EventFileError``: what the
+third-party decoders raise is turned into one (``errors.foreign_errors``), and memory stays
+bounded: files are read in blocks, and npz and HDF5 files whose columns would inflate to more
+than ``stream.MAX_INFLATION`` times their size are refused (``EVENTOCC_MAX_INFLATION`` allows
+more).
 """
 
 from __future__ import annotations
@@ -207,7 +213,10 @@ def write_events(
     """Write event chunks (or one array) to ``path``; returns the number of events written.
 
     The format comes from ``format`` or the extension (``.raw`` is written as EVT 3.0).
-    Timestamps below 0 or beyond the format's range raise ``ValueError``.
+    Timestamps below 0 or beyond the format's range raise ``ValueError``. The file appears
+    whole or not at all: it is written beside ``path`` and moved there once complete, so an
+    error (in the events, or in the file they are read from) leaves a file of that name as it
+    was.
     """
     path = Path(path)
     if format is None:
@@ -219,4 +228,10 @@ def write_events(
             )
     if format not in WRITERS:
         raise ValueError(f"cannot write {format!r}; choose one of {WRITE_FORMATS}")
-    return WRITERS[format](path, chunks, width=width, height=height)
+    partial = path.with_name(f".{path.name}.partial")
+    try:
+        count = WRITERS[format](partial, chunks, width=width, height=height)
+        partial.replace(path)
+    finally:
+        partial.unlink(missing_ok=True)
+    return count

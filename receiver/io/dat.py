@@ -24,6 +24,7 @@ from eventocc.receiver.io.stream import (
     as_event_chunks,
     check_writable,
     read_blocks,
+    sensor_size,
     sorted_by_time,
 )
 
@@ -52,7 +53,9 @@ def open_dat(path: Path) -> EventStream:
                     offset=offset,
                 )
             offset += 2
-    width, height = header_geometry(header) or (None, None)
+    width, height = sensor_size(
+        path, *(header_geometry(header) or (None, None)), limit=COORD_LIMIT, where="in the header"
+    )
     return EventStream(
         _records(path, offset, width, height),
         path=path,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -28,3 +30,26 @@ class MissingExtraError(ImportError):
 
     def __init__(self, what: str, package: str, extra: str) -> None:
         super().__init__(f"{what} needs the '{package}' package: pip install 'eventocc[{extra}]'")
+
+
+@contextmanager
+def foreign_errors(
+    path: str | Path, what: str, *, offset: int | None = None, where: str | None = None
+) -> Iterator[None]:
+    """Raise what a third-party decoder raises inside as ``EventFileError(path, what (...))``.
+
+    For a damaged file h5py, rosbags, apsw, aedat and numpy's npy parser raise unrelated types
+    (KeyError, RuntimeError, TypeError, apsw.CorruptError, tokenize.TokenError, ...), and a
+    Rust decoder's panic arrives as pyo3's ``PanicException``, which derives from
+    ``BaseException`` so that ``except Exception`` lets it pass. Interrupts and exits pass.
+    """
+    try:
+        yield
+    except EventFileError:
+        raise
+    except BaseException as error:
+        if not isinstance(error, Exception) and type(error).__name__ != "PanicException":
+            raise
+        raise EventFileError(
+            path, f"{what} ({type(error).__name__}: {error})", offset=offset, where=where
+        ) from None

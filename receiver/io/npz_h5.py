@@ -10,27 +10,30 @@ imported when installed. npz: the same columns as arrays ``t``, ``x``, ``y``, ``
 from __future__ import annotations
 
 import contextlib
+import io
+import math
+import operator
 import zipfile
-import zlib
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from eventocc.receiver.events import EVENT_DTYPE, concat
-from eventocc.receiver.io.errors import EventFileError, MissingExtraError
+from eventocc.receiver.io.errors import EventFileError, MissingExtraError, foreign_errors
 from eventocc.receiver.io.stream import (
     EventChecker,
     EventStream,
     Progressed,
     as_event_chunks,
+    check_inflation,
     check_writable,
+    sensor_size,
     sorted_by_time,
 )
 
 CHUNK_EVENTS = 1 << 20
-# What numpy's npz loader raises for a damaged zip archive or member.
-NPZ_ERRORS = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error)
+NPZ_ARRAYS = ("t", "x", "y", "p", "t_offset", "width", "height")
 MAX_T = np.iinfo(np.int64).max
 
 
@@ -71,35 +74,35 @@ def _checked(
         yield events, size * (start + len(events)) // max(n_total, 1)
 
 
-def _geometry(width, height) -> tuple[int | None, int | None]:
-    if width is None or height is None:
-        return None, None
-    return int(width), int(height)
-
-
 def open_hdf5(path: Path) -> EventStream:
     h5py = _h5py()
-    try:
+    with foreign_errors(path, "not a readable HDF5 file", offset=0):
         f = h5py.File(path, "r")
-    except OSError as e:
-        raise EventFileError(path, f"not a readable HDF5 file ({e})", offset=0) from None
-    with f:
-        if "events" not in f or not {"t", "x", "y", "p"} <= set(f["events"]):
+    with f, foreign_errors(path, "damaged HDF5 file", where="in the HDF5 tree"):
+        events = f.get("events")
+        if not isinstance(events, h5py.Group) or not {"t", "x", "y", "p"} <= set(events):
             raise EventFileError(
                 path,
                 f"no /events/{{t,x,y,p}} datasets (DSEC layout); top-level keys: {sorted(f)}",
                 where="in the HDF5 tree",
             )
-        lengths = {len(f["events"][k]) for k in "txyp"}
+        columns = [_column(path, h5py, events, k) for k in "txyp"]
+        lengths = {len(c) for c in columns}
         if len(lengths) != 1:
             raise EventFileError(
                 path, f"/events columns differ in length: {lengths}", where="in /events"
             )
-        attrs = f["events"].attrs
-        width, height = _geometry(attrs.get("width"), attrs.get("height"))
         n_total = lengths.pop()
+        # A read inflates whole chunks: count a chunk larger than its column as read in full.
+        decoded = sum(max(n_total, (c.chunks or (0,))[0]) * c.dtype.itemsize for c in columns)
+        check_inflation(path, decoded, path.stat().st_size, where="in /events")
+        attrs = events.attrs
+        width, height = sensor_size(
+            path, attrs.get("width"), attrs.get("height"), where="in the /events attributes"
+        )
+        t_offset = _t_offset(path, f["t_offset"][()] if "t_offset" in f else 0, "/t_offset")
     return EventStream(
-        _hdf5_chunks(path, width, height, n_total),
+        _hdf5_chunks(path, width, height, n_total, t_offset),
         path=path,
         format="hdf5",
         width=width,
@@ -108,24 +111,53 @@ def open_hdf5(path: Path) -> EventStream:
     )
 
 
-def _hdf5_chunks(path: Path, width, height, n_total: int) -> Iterator[Progressed]:
+def _column(path: Path, h5py, events, key: str):
+    """``/events/<key>``, checked to be a 1-D column of integers stored in this file."""
+    column = events[key]
+    if not isinstance(column, h5py.Dataset) or column.ndim != 1 or column.dtype.kind not in "iub":
+        raise EventFileError(
+            path,
+            f"/events/{key} is not a 1-D column of integers ({column!r})",
+            where="in /events",
+        )
+    if column.is_virtual or column.external:
+        raise EventFileError(
+            path,
+            f"/events/{key} is stored outside this file, which is not read",
+            where="in /events",
+        )
+    return column
+
+
+def _t_offset(path: Path, value, where: str) -> int:
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise EventFileError(
+            path, f"t_offset {value!r} is not a whole number", where=where
+        ) from None
+
+
+def _hdf5_chunks(path: Path, width, height, n_total: int, t_offset: int) -> Iterator[Progressed]:
     h5py = _h5py()
-    with h5py.File(path, "r") as f:
-        t_offset = int(f["t_offset"][()]) if "t_offset" in f else 0
+    with foreign_errors(path, "not a readable HDF5 file", offset=0):
+        f = h5py.File(path, "r")
+    with f:
         cols = [f["events"][k] for k in "txyp"]
 
         def pieces():
             for start in range(0, n_total, CHUNK_EVENTS):
                 stop = min(start + CHUNK_EVENTS, n_total)
-                try:
-                    t, x, y, p = (c[start:stop] for c in cols)
-                except OSError as e:  # e.g. a compression filter that is not installed
-                    raise EventFileError(
-                        path,
-                        f"cannot read /events ({e}); Blosc/Zstd files "
-                        "need 'pip install hdf5plugin'",
-                        where=f"at event {start}",
-                    ) from None
+                with foreign_errors(path, "cannot read /events", where=f"at event {start}"):
+                    try:
+                        t, x, y, p = (c[start:stop] for c in cols)
+                    except OSError as e:  # e.g. a compression filter that is not installed
+                        raise EventFileError(
+                            path,
+                            f"cannot read /events ({e}); Blosc/Zstd files "
+                            "need 'pip install hdf5plugin'",
+                            where=f"at event {start}",
+                        ) from None
                 yield _columns_to_events(t, x, y, p, t_offset), start
 
         yield from _checked(
@@ -187,30 +219,25 @@ def write_hdf5(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: 
 
 
 def open_npz(path: Path) -> EventStream:
-    try:
-        data = np.load(path, allow_pickle=False)
-    except NPZ_ERRORS as e:
-        raise EventFileError(path, f"not a readable npz file ({e})", offset=0) from None
-    with data:
-        try:
-            t, x, y, p = (data[k] for k in "txyp")
-            t_offset = int(data["t_offset"]) if "t_offset" in data.files else 0
-            width, height = _geometry(
-                data["width"] if "width" in data.files else None,
-                data["height"] if "height" in data.files else None,
-            )
-        except KeyError as e:
-            raise EventFileError(
-                path, f"missing array {e}; expected t, x, y, p", where="in the npz"
-            ) from None
-        except NPZ_ERRORS as e:
-            raise EventFileError(path, f"corrupt npz member ({e})", where="in the npz") from None
+    arrays = _load_npz(path)
+    missing = [k for k in "txyp" if k not in arrays]
+    if missing:
+        raise EventFileError(
+            path, f"missing array {missing[0]!r}; expected t, x, y, p", where="in the npz"
+        )
+    t, x, y, p = (arrays[k] for k in "txyp")
     if not len(t) == len(x) == len(y) == len(p) or t.ndim != 1:
         raise EventFileError(
             path, "arrays t, x, y, p must be 1-D and of one length", where="in the npz"
         )
-    if not all(np.issubdtype(a.dtype, np.integer) or a.dtype == bool for a in (t, x, y, p)):
+    if not all(a.dtype.kind in "iub" for a in (t, x, y, p)):
         raise EventFileError(path, "arrays t, x, y, p must be integers", where="in the npz")
+    t_offset = _t_offset(path, arrays["t_offset"][()], "in the npz") if "t_offset" in arrays else 0
+    width, height = sensor_size(
+        path,
+        *(arrays[k][()] if k in arrays else None for k in ("width", "height")),
+        where="in the npz",
+    )
     n = len(t)
     if (
         (x.min(initial=0) < 0)
@@ -239,6 +266,48 @@ def open_npz(path: Path) -> EventStream:
         height=height,
         size=path.stat().st_size,
     )
+
+
+def _load_npz(path: Path) -> dict[str, np.ndarray]:
+    """The arrays an npz holds of ``NPZ_ARRAYS``. ``np.load`` would allocate whatever size an
+    array's header claims and inflate whatever a member holds: here the members' sizes are
+    checked against the file's first (``check_inflation``), and each array's against its
+    member's."""
+    with (
+        foreign_errors(path, "not a readable npz file", where="in the npz"),
+        zipfile.ZipFile(path) as archive,
+    ):
+        members = {
+            info.filename.removesuffix(".npy"): info
+            for info in archive.infolist()
+            if info.filename.removesuffix(".npy") in NPZ_ARRAYS
+        }
+        decoded = sum(info.file_size for info in members.values())
+        check_inflation(path, decoded, path.stat().st_size, where="in the npz")
+        return {name: _npy_array(path, name, archive.read(info)) for name, info in members.items()}
+
+
+def _npy_array(path: Path, name: str, data: bytes) -> np.ndarray:
+    """One array of an npz from its member's bytes (numpy's own header parser, no copy)."""
+    f = io.BytesIO(data)
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+    else:
+        raise EventFileError(
+            path, f"array {name!r} is in npy format {version}, not 1.0 or 2.0", where="in the npz"
+        )
+    count = math.prod(shape)
+    if dtype.hasobject or count * dtype.itemsize != len(data) - f.tell():
+        raise EventFileError(
+            path,
+            f"array {name!r} holds {len(data) - f.tell()} bytes, not the {count} of {dtype} "
+            "its header says",
+            where="in the npz",
+        )
+    return np.frombuffer(data, dtype, count, f.tell()).reshape(shape, order="F" if fortran else "C")
 
 
 def write_npz(path: Path, chunks: Iterable[np.ndarray], *, width: int, height: int) -> int:

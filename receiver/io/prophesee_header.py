@@ -6,6 +6,8 @@ from typing import BinaryIO
 
 # A longer "line" is binary payload that happens to start with "% ".
 MAX_HEADER_LINE = 1024
+# Writers put a dozen or two lines; more is payload that looks like a header, read as payload.
+MAX_HEADER_LINES = 1000
 
 # Legacy files name only the HAL plugin; its sensor generation fixes the geometry.
 # (substring of plugin_name, (width, height)), most specific first.
@@ -28,7 +30,9 @@ def read_header(f: BinaryIO) -> tuple[dict[str, str], int]:
     f.seek(0)
     header: dict[str, str] = {}
     offset = 0
-    while f.read(2) == b"% ":
+    for _ in range(MAX_HEADER_LINES):
+        if f.read(2) != b"% ":
+            break
         f.seek(offset)
         line = f.readline(MAX_HEADER_LINE)
         if not line.endswith(b"\n") or not line.isascii():

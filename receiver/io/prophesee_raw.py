@@ -31,6 +31,7 @@ from eventocc.receiver.io.stream import (
     as_event_chunks,
     check_writable,
     read_blocks,
+    sensor_size,
     sorted_by_time,
 )
 
@@ -291,10 +292,9 @@ def open_raw(path: Path, encoding: str | None = None, *, monotonic: bool = False
         log.warning("%s: header says %s, reading as %s as asked", path, named, encoding)
     if encoding not in ENCODINGS:
         raise ValueError(f"unknown EVT encoding {encoding!r}; choose one of {sorted(ENCODINGS)}")
-    geometry = header_geometry(header)
-    if geometry is not None and not all(0 < g <= COORD_LIMIT for g in geometry):
-        raise EventFileError(path, f"header geometry {geometry} is not a sensor size", offset=0)
-    width, height = geometry or (None, None)
+    width, height = sensor_size(
+        path, *(header_geometry(header) or (None, None)), limit=COORD_LIMIT, where="in the header"
+    )
     return EventStream(
         _decode_file(path, payload, ENCODINGS[encoding], width, height, monotonic),
         path=path,

@@ -9,6 +9,7 @@ because deserializing them as Python objects costs a Python object per event.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import struct
 from collections.abc import Iterator
@@ -18,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from eventocc.receiver.events import EVENT_DTYPE
-from eventocc.receiver.io.errors import EventFileError, MissingExtraError
-from eventocc.receiver.io.stream import EventChecker, EventStream, Progressed
+from eventocc.receiver.io.errors import EventFileError, MissingExtraError, foreign_errors
+from eventocc.receiver.io.stream import EventChecker, EventStream, Progressed, sensor_size
 
 log = logging.getLogger(__name__)
 
@@ -71,11 +72,14 @@ def _bag_size(path: Path) -> int:
 def open_rosbag(path: Path) -> EventStream:
     with _open_reader(path) as reader:
         connections = _event_connections(path, reader)
-        first = next(reader.messages(connections=connections), None)
+        with foreign_errors(path, "damaged ROS bag", where="in message 0"):
+            first = next(reader.messages(connections=connections), None)
         width = height = None
         if first is not None:
             _, width, height = _parse(path, first[2], reader.is2, 0)
-            width, height = (width, height) if width and height else (None, None)
+            width, height = sensor_size(
+                path, *((width, height) if width and height else (None, None)), where="in message 0"
+            )
         n_messages = sum(c.msgcount for c in connections)
     return EventStream(
         _messages(path, width, height, n_messages),
@@ -90,11 +94,9 @@ def open_rosbag(path: Path) -> EventStream:
 @contextmanager
 def _open_reader(path: Path) -> Iterator:
     AnyReader = _anyreader()
-    reader = AnyReader([path])
-    try:
+    with foreign_errors(path, "not a readable ROS bag", offset=0):
+        reader = AnyReader([path])
         reader.open()
-    except Exception as e:  # rosbags raises several unrelated types for a bad container
-        raise EventFileError(path, f"not a readable ROS bag ({e})", offset=0) from None
     try:
         yield reader
     finally:
@@ -121,8 +123,13 @@ def _messages(path: Path, width, height, n_messages: int) -> Iterator[Progressed
     size = _bag_size(path)
     with _open_reader(path) as reader:
         connections = _event_connections(path, reader)
-        for i, (_, _, raw) in enumerate(reader.messages(connections=connections)):
-            events, _, _ = _parse(path, raw, reader.is2, i)
+        messages = reader.messages(connections=connections)
+        for i in itertools.count():
+            with foreign_errors(path, "damaged ROS bag", where=f"in message {i}"):
+                message = next(messages, None)
+            if message is None:
+                return
+            events, _, _ = _parse(path, message[2], reader.is2, i)
             problem = checker.first_problem(events)
             if problem is not None:
                 j, what = problem

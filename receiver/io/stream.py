@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import operator
+import os
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -10,14 +12,77 @@ import numba
 import numpy as np
 
 from eventocc.receiver.events import EVENT_DTYPE
+from eventocc.receiver.io.errors import EventFileError
 
 # Real sensors reorder events by ~10 us; a step back this large means a corrupt file.
 MAX_TIME_REVERSAL_US = 1_000_000
 # Files are read in blocks of this many bytes, so memory stays bounded for any file size.
 BLOCK_BYTES = 16 << 20
 
+COORD_LIMIT = 1 << 16
+"""Event coordinates are uint16: no sensor is larger a side."""
+MAX_INFLATION = 100.0
+"""Event columns compress 4-6 times (npz and DSEC-layout HDF5 of a real EVT 3.0 recording or of
+synthetic events): a file whose columns decode to more than this many times its size is a
+decompression bomb or corrupt, and is refused before it is inflated."""
+INFLATION_FLOOR_BYTES = 16 << 20
+"""What any file may decode to whatever its size (a test's file of one repeated event)."""
+INFLATION_ENV = "EVENTOCC_MAX_INFLATION"
+"""Overrides ``MAX_INFLATION``, for a real file that compresses better than event data does."""
+
 # (events, bytes of the source consumed so far): what a reader's generator yields.
 Progressed = tuple[np.ndarray, int]
+
+
+def sensor_size(
+    path: Path, width: object, height: object, *, limit: int = COORD_LIMIT, where: str
+) -> tuple[int, int] | tuple[None, None]:
+    """The sensor size a file states, checked: two whole numbers 1..``limit``; (None, None)
+    when it states none. A damaged header's size would otherwise reach the compiled checks
+    (a 20-digit height overflowed them)."""
+    if width is None or height is None:
+        return None, None
+    try:
+        w, h = operator.index(width), operator.index(height)
+    except TypeError:
+        raise EventFileError(
+            path, f"sensor size {width!r} x {height!r} is not two whole numbers", where=where
+        ) from None
+    if not (0 < w <= limit and 0 < h <= limit):
+        raise EventFileError(
+            path, f"sensor size {w}x{h} is not 1..{limit} pixels a side", where=where
+        )
+    return w, h
+
+
+def max_inflation() -> float:
+    """``MAX_INFLATION``, or the environment's ``EVENTOCC_MAX_INFLATION``."""
+    value = os.environ.get(INFLATION_ENV)
+    if value is None:
+        return MAX_INFLATION
+    try:
+        limit = float(value)
+    except ValueError:
+        limit = float("nan")
+    if not limit > 0:
+        raise ValueError(f"{INFLATION_ENV} must be a positive number, got {value!r}")
+    return limit
+
+
+def check_inflation(path: Path, decoded: int, stored: int, *, where: str) -> None:
+    """Refuse a file whose columns would decode to more than ``max_inflation()`` times the
+    ``stored`` bytes (or ``INFLATION_FLOOR_BYTES``): the readers' bound on memory and time."""
+    limit = max_inflation()
+    if decoded <= max(INFLATION_FLOOR_BYTES, limit * stored):
+        return
+    raise EventFileError(
+        path,
+        f"its columns decode to {decoded:,} bytes, {decoded / max(stored, 1):,.0f} times its "
+        f"{stored:,}; event data inflates at most {limit:g} times (or to "
+        f"{INFLATION_FLOOR_BYTES >> 20} MiB), so this is a decompression bomb or corrupt. If "
+        f"the file is real, allow it with {INFLATION_ENV}={decoded / max(stored, 1) * 1.1:.0f}",
+        where=where,
+    )
 
 
 class EventStream:
@@ -88,7 +153,9 @@ class EventChecker:
     ``MAX_TIME_REVERSAL_US`` before the latest time seen so far.
     """
 
-    def __init__(self, width: int | None, height: int | None, coord_limit: int = 1 << 16) -> None:
+    def __init__(
+        self, width: int | None, height: int | None, coord_limit: int = COORD_LIMIT
+    ) -> None:
         self.width = width or coord_limit
         self.height = height or coord_limit
         self.t_max = np.iinfo(np.int64).min

@@ -23,28 +23,34 @@ from eventocc.receiver.io.stream import (
     Progressed,
     as_event_chunks,
     check_writable,
+    sensor_size,
     sorted_by_time,
 )
 
 TEXT_BLOCK_BYTES = 4 << 20
+MAX_LINE_BYTES = 64 << 10
+"""An event line is some 40 bytes: a longer line is not 't x y p' text (and is not held)."""
 # Seconds below 2**32 parse from text into float64 with sub-microsecond error.
 MAX_T = (1 << 32) * 1_000_000 - 1
 # "# width 640 height 480": an optional comment the writer adds so geometry survives.
-GEOMETRY_COMMENT = re.compile(rb"#\s*width\s+(\d+)\s+height\s+(\d+)")
+GEOMETRY_COMMENT = re.compile(rb"#\s*width\s+(\d{1,9})\s+height\s+(\d{1,9})\b")
 
 
 def open_text(path: Path) -> EventStream:
     width = height = None
     seconds = False
     with path.open("rb") as f:
-        for line in f:
+        while line := f.readline(MAX_LINE_BYTES + 1):
+            _check_line_length(path, line, f.tell() - len(line))
             if line.startswith(b"#"):
                 if m := GEOMETRY_COMMENT.match(line):
-                    width, height = int(m[1]), int(m[2])
+                    width, height = m[1], m[2]
                 continue
             if line.strip():
                 seconds = any(c in line.split()[0] for c in b".eE")
                 break
+    if width is not None:
+        width, height = sensor_size(path, int(width), int(height), where="in its geometry comment")
     return EventStream(
         _lines(path, seconds, width, height),
         path=path,
@@ -67,6 +73,7 @@ def _lines(
             text = tail + data
             cut = text.rfind(b"\n") + 1 if data else len(text)
             block, tail = text[:cut], text[cut:]
+            _check_line_length(path, tail, offset + len(block))
             if block:
                 events = _parse(path, block, offset, seconds)
                 problem = checker.first_problem(events)
@@ -82,6 +89,15 @@ def _lines(
                     yield events, offset
             if not data:
                 return
+
+
+def _check_line_length(path: Path, line: bytes, offset: int) -> None:
+    if len(line) > MAX_LINE_BYTES:
+        raise EventFileError(
+            path,
+            f"a line longer than {MAX_LINE_BYTES >> 10} KiB: not 't x y p' text",
+            offset=offset,
+        )
 
 
 def _parse(path: Path, block: bytes, offset: int, seconds: bool) -> np.ndarray:

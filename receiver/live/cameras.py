@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,10 +45,11 @@ class LiveCamera:
         *,
         readings: SensorReadings | None = None,
         max_event_rate: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.width, self.height = width, height
         self._chunks = chunks
-        self._live = StayLive()
+        self._live = StayLive(clock=clock)
         self.readings = readings
         self.max_event_rate = max_event_rate
 

@@ -2,13 +2,14 @@
 
 The pipeline sees every event; what leaves it is thinned for each audience:
 
-- the output folder keeps everything: the full-rate trajectory (``trajectory.tum``) and every
-  finished message (``messages/``), plus the publisher's spool (``spool.db``) and the latest
-  health (``health.json``);
+- the output folder keeps everything: the full-rate trajectory (``trajectory.tum``: the poses
+  of proven locks; ``trajectory_all.tum``: the tentative ones too), every finished message
+  (``messages/``), the publisher's spool (``spool.db``) and the latest health
+  (``health.json``);
 - the server gets poses at most ``pose_hz`` (for the UI; durable, so a server restart loses no
   segment), every finished message (durable), each frame's statistics, and a few times a
-  second progress, health and a time-surface thumbnail (ephemeral news: while the server is
-  away, only the newest of each kind waits).
+  second progress, health, a time-surface thumbnail and the cells of a read frame (ephemeral
+  news: while the server is away, only the newest of each kind waits).
 
 A source that knows what the screen sends (the virtual camera) makes the daemon follow the
 transmitter: when its link settings change, a ``LinkFollower`` rebuilds the pipeline for them,
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import base64
 import logging
+import os
 import sys
 import threading
 import time
@@ -34,6 +36,8 @@ from pydantic import BaseModel
 
 from eventocc.occ.profiles import LinkSettings
 from eventocc.occ.report import (
+    MAX_WAITING,
+    CellsReport,
     FrameStats,
     HealthReport,
     MessageReport,
@@ -69,6 +73,10 @@ class Pipeline(Protocol):
     stand-in): ``push`` events, and the stream decoder's progress per message in flight."""
 
     stream: Progress
+    cell_px: float | None
+    """A cell's side in pixels as the camera sees it (``Receiver.cell_px``)."""
+    detection_failure: str | None
+    """Why the latest detection failed; None once locked."""
 
     def push(self, chunk: np.ndarray) -> list[Output]: ...
 
@@ -84,7 +92,7 @@ class DaemonConfig:
     pose_hz: float = 100.0
     """Poses sent to the server per second, at most (the file keeps all of them)."""
     news_hz: float = 4.0
-    """Progress, health and thumbnail updates per second."""
+    """Progress, health, thumbnail and read-cells updates per second."""
     thumbnail_px: tuple[int, int] = (64, 48)
     thumbnail_tau_us: int = 30_000
     """Time-surface decay: events older than a few tau fade to black."""
@@ -124,31 +132,37 @@ class LinkFollower:
     def settings_for(self, sending: LinkSettings) -> LinkSettings:
         profile, cells, refresh_hz = self.pinned
         return LinkSettings(
-            profile or sending.profile, cells or sending.cells, refresh_hz or sending.refresh_hz
+            sending.profile if profile is None else profile,
+            sending.cells if cells is None else cells,
+            sending.refresh_hz if refresh_hz is None else refresh_hz,
         )
 
     def pipeline(self) -> Pipeline:
         return self.build(self.receiving)
 
     def follow(self, sending: LinkSettings) -> Pipeline | None:
-        """A pipeline rebuilt for ``sending``, or None if the current one still fits."""
+        """A pipeline rebuilt for ``sending``, or None if the current one still fits or none
+        can be built for it (said in the log: the receiver goes on as it was)."""
         wanted = self.settings_for(sending)
         if wanted != sending:
             log.warning(
                 "the transmitter sends %s but the receiver is pinned to %s: drop "
                 "--profile/--cells/--refresh-hz to follow it",
-                describe(sending),
-                describe(wanted),
+                sending,
+                wanted,
             )
         if wanted == self.receiving:
             return None
-        log.info("the transmitter switched to %s: rebuilding the receiver", describe(wanted))
+        log.info("the transmitter switched to %s: rebuilding the receiver", wanted)
+        try:
+            pipeline = self.build(wanted)
+        except ValueError as error:
+            log.error(
+                "cannot build a receiver for %s (%s); keeping %s", wanted, error, self.receiving
+            )
+            return None
         self.receiving = wanted
-        return self.pipeline()
-
-
-def describe(link: LinkSettings) -> str:
-    return f"{link.profile} with {link.cells} cells at {link.refresh_hz:g} Hz"
+        return pipeline
 
 
 @dataclass
@@ -164,15 +178,18 @@ class DaemonSummary:
 
 
 class OutputFolder:
-    """The daemon's files: the full-rate trajectory and the finished messages."""
+    """The daemon's files: the full-rate trajectory, of the proven locks' poses
+    (``trajectory.tum``) and of all (``trajectory_all.tum``), and the finished messages."""
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
         self.messages = self.root / "messages"
         self.messages.mkdir(parents=True, exist_ok=True)
         self.trajectory = self.root / "trajectory.tum"
-        if not self.trajectory.exists():
-            self.trajectory.write_text(TUM_HEADER)
+        self.trajectory_all = self.root / "trajectory_all.tum"
+        for path in (self.trajectory, self.trajectory_all):
+            if not path.exists():
+                path.write_text(TUM_HEADER)
         self._poses: list[PoseEstimate] = []
 
     def append_poses(self, poses: list[PoseEstimate]) -> None:
@@ -184,11 +201,11 @@ class OutputFolder:
         # a tenth of a core.
         if not self._poses:
             return
-        lines = tum_lines(
-            [p.t_us for p in self._poses], np.stack([p.T_world_cam for p in self._poses])
-        )
-        with self.trajectory.open("a") as f:
-            f.write(lines)
+        with self.trajectory_all.open("a") as f:
+            f.write(_tum_lines(self._poses))
+        if verified := [p for p in self._poses if p.verified]:
+            with self.trajectory.open("a") as f:
+                f.write(_tum_lines(verified))
         self._poses.clear()
 
     def write_health(self, report: HealthReport) -> None:
@@ -198,10 +215,42 @@ class OutputFolder:
         partial.replace(self.root / "health.json")  # atomic: readers never see half a file
 
     def save_message(self, name: str, sha256: str, data: bytes) -> Path:
-        # The digest prefix keeps two messages of the same name apart; the name is never a path.
-        path = self.messages / f"{sha256[:12]}-{Path(name).name or 'message'}"
+        path = self.messages / message_file_name(name, sha256, _name_max(self.messages))
         path.write_bytes(data)
         return path
+
+
+def _tum_lines(poses: list[PoseEstimate]) -> str:
+    return tum_lines([p.t_us for p in poses], np.stack([p.T_world_cam for p in poses]))
+
+
+NAME_MAX = 255
+"""Bytes in a file name on Linux's and macOS's file systems, where the system does not say."""
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or no answer
+        return NAME_MAX
+
+
+def message_file_name(name: str, sha256: str, name_max: int = NAME_MAX) -> str:
+    """``<digest prefix>-<name>``: the prefix keeps two messages of the same name apart; the
+    name is never a path, holds no control characters, and is cut (its extension kept, if
+    short) to fit ``name_max`` bytes of UTF-8: a message name may be 255 bytes by itself."""
+    prefix = f"{sha256[:12]}-"
+    base = "".join("_" if ord(c) < 32 or c == "\x7f" else c for c in Path(name).name)
+    if base in ("", ".", ".."):
+        base = "message"
+    room = name_max - len(prefix)
+    if len(base.encode()) > room:
+        stem, dot, suffix = base.rpartition(".")
+        if not (stem and len(suffix.encode()) <= 16):
+            stem, dot, suffix = base, "", ""
+        room -= len((dot + suffix).encode())
+        base = stem.encode()[:room].decode(errors="ignore") + dot + suffix
+    return prefix + base
 
 
 class Daemon:
@@ -226,6 +275,7 @@ class Daemon:
         self._sending: LinkSettings | None = None
         self._last_pose_sent_us = -(1 << 62)
         self._next_news = 0.0
+        self._next_cells = 0.0
         self._rate = RateMeter()
 
     def run(self, stop: threading.Event | None = None) -> DaemonSummary:
@@ -252,12 +302,29 @@ class Daemon:
         self.summary.chunks += 1
         self.summary.events += len(chunk)
         self._rate.add(chunk)
+        self.follow_source_waiting()
         self.follow_transmitter()
         self.handle(self.pipeline.push(chunk))
         if time.monotonic() >= self._next_news:
             self._next_news = time.monotonic() + 1.0 / self.config.news_hz
             self.output.flush_poses()
             self.publish_news(chunk)
+
+    def follow_source_waiting(self) -> None:
+        """Idle while the source says it has nothing to show (a paused or closed transmitter
+        page), not the last tracking state frozen; scanning again once it shows something."""
+        if self.source_waiting() is not None:
+            self.state = TrackingState.IDLE
+        elif self.state is TrackingState.IDLE:
+            self.state = TrackingState.SCANNING
+
+    def source_waiting(self) -> str | None:
+        """Why the source gives no events now, cut to what a report holds (a reason may quote
+        a long server answer)."""
+        waiting = getattr(self.source, "waiting", None)
+        if waiting is None or len(waiting) <= MAX_WAITING:
+            return waiting
+        return waiting[: MAX_WAITING - 1] + "…"
 
     def follow_transmitter(self) -> None:
         """Rebuild the pipeline when the screen's link settings changed."""
@@ -281,6 +348,7 @@ class Daemon:
             elif isinstance(out, FrameOutput):
                 self.summary.frames += 1
                 self.sink.publish(self.frame_stats(out), durable=False)
+                self.publish_cells(out)
             elif isinstance(out, MessageOutput):
                 self.publish_message(out)
             elif isinstance(out, StateChange):
@@ -303,15 +371,27 @@ class Daemon:
             position=tuple(row[:3]),
             quaternion_xyzw=tuple(row[3:]),
             state=TrackingState.TRACKING,
+            verified=pose.verified,
         )
         self.sink.publish(report, durable=True)
 
     def publish_message(self, out: MessageOutput) -> None:
+        """Spool the message for the server first, then keep a copy in the output folder: a
+        copy that cannot be written (a full disk) is logged, and loses nothing else."""
         message = out.message
-        path = self.output.save_message(message.name, message.sha256, message.data)
-        log.info("message %r complete (%d bytes) -> %s", message.name, len(message.data), path)
         self.summary.messages.append(message.sha256)
         self.sink.publish(MessageReport.of(message), durable=True)
+        try:
+            path = self.output.save_message(message.name, message.sha256, message.data)
+        except OSError as error:
+            log.error(
+                "message %r complete (%d bytes), but not saved: %s",
+                message.name,
+                len(message.data),
+                error,
+            )
+            return
+        log.info("message %r complete (%d bytes) -> %s", message.name, len(message.data), path)
 
     def frame_stats(self, out: FrameOutput) -> FrameStats:
         read = out.read
@@ -324,6 +404,14 @@ class Daemon:
             payload_bits=out.payload_bits,
         )
 
+    def publish_cells(self, out: FrameOutput) -> None:
+        """The cells of a read frame, ``news_hz`` times a second at most (the dashboard's view
+        of what the camera reads, not a record)."""
+        if time.monotonic() < self._next_cells:
+            return
+        self._next_cells = time.monotonic() + 1.0 / self.config.news_hz
+        self.sink.publish(cells_report(out), durable=False)
+
     def publish_news(self, chunk: np.ndarray | None) -> None:
         """The periodic ephemeral updates: progress, health, thumbnail."""
         for stream in self.pipeline.stream.progress().values():
@@ -335,6 +423,11 @@ class Daemon:
             state=self.state,
             source_speed=getattr(self.source, "speed", None),
             camera=camera_report() if camera_report is not None else None,
+            px_per_cell=self.pipeline.cell_px,
+            detection_failure=(
+                None if self.state is TrackingState.TRACKING else self.pipeline.detection_failure
+            ),
+            waiting=self.source_waiting(),
         )
         self.sink.publish(health, durable=False)
         self.output.write_health(health)
@@ -358,6 +451,21 @@ class Daemon:
             height=height,
             pixels_b64=base64.b64encode(pixels.tobytes()).decode(),
         )
+
+
+def _packed_b64(bits: np.ndarray) -> str:
+    return base64.b64encode(np.packbits(np.asarray(bits, bool).reshape(-1)).tobytes()).decode()
+
+
+def cells_report(out: FrameOutput) -> CellsReport:
+    read = out.read
+    return CellsReport(
+        t_us=read.t_us,
+        frame_index=max(read.index, 0),
+        cells=read.bits.shape[0],
+        bits_b64=_packed_b64(read.bits),
+        corrected_b64=None if out.corrected is None else _packed_b64(out.corrected),
+    )
 
 
 @numba.njit(cache=True, nogil=True)

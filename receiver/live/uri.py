@@ -1,6 +1,8 @@
 """Sources named by URI:
 
 - ``sim:`` the virtual event camera, watching what the server's transmitter plays right now;
+  ``sim:MESSAGE_ID`` watches that message until a transmitter page reports (``sim:``: the
+  newest upload);
 - ``file:PATH`` (or just ``PATH``) a recording, replayed at real-time pace or as fast as possible;
 - ``nd:`` / ``metavision:[SERIAL]`` / ``dv:`` a live camera through an optional backend
   (neuromorphic-drivers, Metavision's Python API, dv-processing);
@@ -36,7 +38,7 @@ def open_source(
     if scheme == "sim":
         from eventocc.receiver.live.virtual_camera import VirtualCamera
 
-        return VirtualCamera(**virtual_camera_options)
+        return VirtualCamera(stand_in=rest or None, **virtual_camera_options)
     from eventocc.receiver.live.cameras import LIVE_BACKENDS, open_live_camera
 
     if scheme in LIVE_BACKENDS:

@@ -5,7 +5,9 @@ fetches that message, and simulates an event camera watching that screen in real
 whole loop (upload -> transmitter -> camera -> receiver -> dashboard) closes without hardware.
 When the transmitter switches to another message the simulation restarts on it (and ``link``
 tells the daemon the new link settings). Until a transmitter page reports, the camera watches
-the newest uploaded message from its first frame, as if a page were showing it.
+its stand-in message (``sim:MESSAGE_ID``; ``sim:`` alone: the newest upload) from its first
+frame, as if a page were showing it. A paused page holds one still frame and a closed one
+shows nothing: the camera then sees no events, and ``waiting`` says why.
 
 The simulation runs in a child process (``SimulatorProcess``), a few packets ahead, so that on
 two cores the simulator and the receiver pipeline work side by side. The camera stays live:
@@ -16,7 +18,6 @@ log, and reports its ``speed``.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import multiprocessing
@@ -26,7 +27,7 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import replace
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -34,8 +35,11 @@ from eventocc.occ.profiles import LinkSettings
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.events import empty_events
-from eventocc.receiver.live.screen import Showing, TransmitterClient
+from eventocc.receiver.live.screen import Idle, Showing, StatusError, TransmitterClient
 from eventocc.receiver.live.sources import MAX_LAG_S, BehindNote, LiveClock, SourceError
+
+if TYPE_CHECKING:
+    from eventocc.receiver.sim import Scene
 
 log = logging.getLogger(__name__)
 
@@ -197,6 +201,7 @@ class VirtualCamera:
         self,
         server_url: str,
         *,
+        stand_in: str | None = None,
         camera: CameraModel | None = None,
         motion: str = DEFAULT_MOTION,
         chunk_us: int = 5_000,
@@ -205,8 +210,10 @@ class VirtualCamera:
         clock: LiveClock | None = None,
         simulator: Simulator | None = None,
     ) -> None:
-        """``simulator`` defaults to a ``SimulatorProcess``, started on the first ``chunks``."""
-        self.server = TransmitterClient(server_url, who="the virtual camera")
+        """``stand_in``: the message watched until a transmitter page reports (None: the
+        newest upload). ``simulator`` defaults to a ``SimulatorProcess``, started on the first
+        ``chunks``."""
+        self.server = TransmitterClient(server_url, who="the virtual camera", stand_in=stand_in)
         if motion not in MOTIONS:
             raise SourceError(f"unknown motion {motion!r}; choose one of {', '.join(MOTIONS)}")
         self.camera = camera or default_camera()
@@ -224,7 +231,8 @@ class VirtualCamera:
         (1.0: keeping up; None: nothing to watch)."""
         self.skips = 0
         """Times the camera skipped ahead because the simulation fell behind the screen."""
-        self._waiting_for: str | None = None
+        self.waiting: str | None = None
+        """Why the camera sees nothing now (None while it watches a message)."""
         self._watching: Showing | None = None
         self._timeline: tuple[int, int, float] | None = None
         """(event time, frame, period in us) of the stream watched: frame k is on screen from
@@ -241,18 +249,15 @@ class VirtualCamera:
         """The stream's encoder, fetched once per stream (a skip ahead reuses it)."""
         if self._encoder is not None and self._encoder[0].same_stream(showing):
             return self._encoder[1]
-        meta = json.loads(self.server.get(f"/api/messages/{showing.message_id}") or b"null")
-        data = self.server.get(f"/api/messages/{showing.message_id}/content")
-        if meta is None or data is None:
-            raise LookupError(f"message {showing.message_id} is gone")
+        name, data = self.server.message(showing.message_id)
         link = showing.link
-        encoder = StreamEncoder(data, name=meta["name"], profile=link.profile, cells=link.cells)
+        encoder = StreamEncoder(data, name=name, profile=link.profile, cells=link.cells)
         self._encoder = (showing, encoder)
         return encoder
 
     # --- simulating ---
 
-    def scene(self, encoder: StreamEncoder, showing: Showing):
+    def scene(self, encoder: StreamEncoder, showing: Showing) -> Scene:
         from eventocc.receiver.sim import Display, HandHeldMotion, Scene, StaticMotion
 
         motion = (
@@ -291,20 +296,13 @@ class VirtualCamera:
 
     def _follow_the_screen(self) -> Iterator[np.ndarray]:
         while True:
-            showing = self._something_to_watch()
-            if showing is None:
+            watching = self._scene_to_watch()
+            if watching is None:
                 self.speed = None
                 yield empty_events()
                 time.sleep(WAIT_S)
                 continue
-            showing, t_offset = self._resume(showing)
-            try:
-                scene = self.scene(self.encoder(showing), showing)
-            except (OSError, LookupError) as error:
-                log.warning("virtual camera cannot fetch message %s: %s", showing.message_id, error)
-                yield empty_events()
-                time.sleep(WAIT_S)
-                continue
+            scene, showing, t_offset = watching
             if self._watching is None or not showing.same_stream(self._watching):
                 log.info(
                     "virtual camera watching message %s (%s, %d cells, %.1f Hz) from frame %d",
@@ -316,6 +314,22 @@ class VirtualCamera:
                 )
             self._watching, self.link = showing, showing.link
             yield from self._watch(scene, showing, t_offset)
+
+    def _scene_to_watch(self) -> tuple[Scene, Showing, int] | None:
+        """The scene of what the transmitter shows, the showing from where the camera resumes
+        and that frame's event time; None while there is nothing the camera can watch."""
+        showing = self._something_to_watch()
+        if showing is None:
+            return None
+        showing, t_offset = self._resume(showing)
+        try:
+            scene = self.scene(self.encoder(showing), showing)
+        except OSError as error:
+            return self._wait(f"cannot fetch message {showing.message_id} ({error})")
+        except (LookupError, ValueError) as error:  # gone, or no encoder takes it
+            return self._wait(f"cannot show message {showing.message_id}: {error}")
+        self.waiting = None
+        return scene, showing, t_offset
 
     def _resume(self, showing: Showing) -> tuple[Showing, int]:
         """Where to start simulating ``showing``: the frame on screen and the event time of its
@@ -361,16 +375,22 @@ class VirtualCamera:
                     return
 
     def _something_to_watch(self) -> Showing | None:
-        """``showing()``, with a failure logged once rather than raised: the camera waits."""
+        """``showing()``, or None with the reason: the camera waits for something it can watch."""
         try:
             showing = self.server.showing()
-            reason = "nothing is playing"
-        except (OSError, LookupError) as error:
-            showing, reason = None, f"server unreachable ({error})"
-        if showing is None and reason != self._waiting_for:
-            log.info("virtual camera waiting: %s", reason)
-        self._waiting_for = None if showing is not None else reason
+        except OSError as error:
+            return self._wait(f"server unreachable ({error})")
+        except StatusError as error:
+            return self._wait(str(error))
+        if isinstance(showing, Idle):
+            return self._wait(showing.reason, logging.INFO)
         return showing
+
+    def _wait(self, reason: str, level: int = logging.WARNING) -> None:
+        """Say once why the camera waits (until it watches something again)."""
+        if reason != self.waiting:
+            log.log(level, "virtual camera waiting: %s", reason)
+        self.waiting = reason
 
 
 def _speed(simulated_us: int, later_by_s: float) -> float:

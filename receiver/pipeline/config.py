@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 from eventocc.occ.marker import MarkerGeometry
-from eventocc.occ.profiles import get_profile
+from eventocc.occ.profiles import MAX_REFRESH_HZ, MIN_REFRESH_HZ, get_profile
 from eventocc.receiver.camera import CameraModel
 
 
@@ -222,6 +222,11 @@ class DecoderParams:
     off and a ring width too near reads the static white ring as the 'L' and passes every
     other check, but none of its frames ever verifies, while a right lock's first frames do
     within a dozen. None: no probation."""
+    still_probation_us: int | None = 100_000
+    """A lock from a still detection (framed profiles) must pass a frame check within the
+    frames of this much event time (at least two), or it is dropped and detection resumes: a
+    still camera reads a right lock's frames cleanly from the first, so frames that keep
+    failing their CRC mean a wrong lock. None: no probation."""
 
     def __post_init__(self) -> None:
         if self.read_px_per_cell is not None and self.read_px_per_cell <= 0:
@@ -230,6 +235,11 @@ class DecoderParams:
             )
         if self.turn_frames < 1:
             raise ValueError(f"decoder turn_frames must be at least 1, got {self.turn_frames}")
+        if self.still_probation_us is not None and self.still_probation_us <= 0:
+            raise ValueError(
+                "decoder still_probation_us must be positive or None, "
+                f"got {self.still_probation_us}"
+            )
         if self.probation_frames is not None and self.probation_frames < 1:
             raise ValueError(
                 f"decoder probation_frames must be at least 1 or None, got {self.probation_frames}"
@@ -256,8 +266,9 @@ class ReceiverConfig:
 
     def __post_init__(self) -> None:
         get_profile(self.profile)  # raises with the list of valid names
-        if not 1.0 <= self.refresh_hz <= 1000.0:
-            raise ValueError(f"refresh rate must be 1..1000 Hz, got {self.refresh_hz}")
+        if not MIN_REFRESH_HZ <= self.refresh_hz <= MAX_REFRESH_HZ:
+            hz_range = f"{MIN_REFRESH_HZ:g}..{MAX_REFRESH_HZ:g}"
+            raise ValueError(f"refresh rate must be {hz_range} Hz, got {self.refresh_hz}")
         if self.marker_size_m <= 0:
             raise ValueError(f"marker size must be positive metres, got {self.marker_size_m}")
         if self.pose_smoothing_us < 0:

@@ -462,7 +462,16 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
             continue
         if found is not None:
             return found
+    misses[0].cell_px = region_cell_px(region, config)
     raise misses[0]  # the preferred path's reason
+
+
+def region_cell_px(region: BlinkRegion, config: ReceiverConfig) -> float:
+    """A cell's side in pixels, roughly, from the blinking region's box: the region is about the
+    inner locator (``_SQUARE_SCALES``), its box a tile wider on each side."""
+    box = region.box
+    side = min(box.x1 - box.x0, box.y1 - box.y0) - 2 * TILE_PX
+    return max(side, 0) / config.geometry.locator_side
 
 
 def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:

@@ -76,6 +76,10 @@ _SQUARE_TURNS = np.radians([-3.0, -1.5, 0.0, 1.5, 3.0])
 class MarkerNotFound(Exception):
     """Detection failed; the message says which stage and why."""
 
+    cell_px: float | None = None
+    """A cell's side in pixels as the blinking region found suggests, if one was found: too
+    few pixels per cell is why a marker that blinks plainly cannot be read."""
+
 
 @dataclass(frozen=True)
 class Box:

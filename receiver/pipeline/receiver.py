@@ -13,9 +13,11 @@ motion the frames after the detected burst's, waited for if need be: ``Receiver.
 tracking, a lock is dropped when the tracker leaves the ring's edges or an outer edge stays silent
 while the motion sweeps it (``EdgeTracker.contradicted``), the marker leaves the view,
 the inner locator goes unseen for several frames, or its 'L' reads upright barely better than
-turned (``Track.misturned``): a pose a quarter turn off passes every other check. A lock
-from a detection under motion is on probation until one of its frames passes its check
-(``Track.failed_probation``), since some wrong poses read the 'L' well.
+turned (``Track.misturned``): a pose a quarter turn off passes every other check. Some wrong
+poses read the 'L' well all the same, so a lock stays unproven until one of its frames passes
+its check (CRC; ``paper``: its 'L' read clearly), and is on probation meanwhile (a few frames
+for a still camera, more under motion: ``Track.failed_probation``). Poses of an unproven lock
+come out tentative (``PoseEstimate.verified`` false).
 
 Only one stage touches every event while the marker is tracked: the compiled triage
 (``triage.EventTriage``), which keeps each pixel's latest burst times for the decoder and hands
@@ -32,6 +34,7 @@ waits for the next chunk; ``finish`` processes it at the end of a recording.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import defaultdict, deque
 from contextlib import contextmanager
@@ -64,6 +67,9 @@ tracker mask (the edges move little meanwhile)."""
 class PoseEstimate:
     t_us: int
     T_world_cam: np.ndarray
+    verified: bool = False
+    """A frame had proven the lock when the pose came out (``Track.proven``); before that
+    the pose is tentative: a wrong lock can look right to every other check."""
 
 
 @dataclass(frozen=True)
@@ -73,6 +79,9 @@ class FrameOutput:
     """The inner locator was seen, so the bits went to the stream decoder."""
     payload_bits: int = 0
     """Payload bits the stream decoder verified in this frame (``StreamDecoder.verified_bits``)."""
+    corrected: np.ndarray | None = None
+    """(cells, cells) bool: the cells whose bits the frame's Reed-Solomon code corrected; None
+    if it did not decode or was not decoded (``StreamDecoder.corrected``)."""
 
 
 @dataclass(frozen=True)
@@ -119,18 +128,22 @@ class Track:
     """Whether frames keep each pixel's first burst after their window's middle too
     (``DecoderParams.late_mark_px_per_cell``)."""
     probation: int | None
-    """Frames left for a lock on probation to pass a frame check (``failed_probation``)."""
+    """Frames with the locator seen left for the lock to be proven (``failed_probation``);
+    None: no limit."""
     turn_leads: deque[float]
     """The latest read frames' leads of the locator's canonical turn (``misturned``)."""
     missed: int = 0
     """Frames in a row without the inner locator."""
+    proven: bool = False
+    """Whether a frame has proven the lock: one passed its check (CRC, framed profiles) or, for
+    ``paper`` (no check of its own), read the locator's 'L' upright and clear."""
 
     def failed_probation(self, frame: FrameOutput) -> bool:
-        """Whether a lock on probation (``DecoderParams.probation_frames``) has now read its
-        last allowed frame without one passing its check; a frame that passes ends it."""
+        """Whether the lock has now read its last frame on probation unproven; once proven it
+        is off probation for good."""
         if self.probation is None:
             return False
-        self.probation = None if frame.payload_bits else self.probation - 1
+        self.probation = None if self.proven else self.probation - 1
         return self.probation == 0
 
     def misturned(self, read: FrameRead, min_turn_lead: float) -> bool:
@@ -182,6 +195,12 @@ class Receiver:
         """The tracked poses (T_cam_world) that the decoder reads frames through."""
         self._smoother = PoseSmoother(config.pose_smoothing_us)
         self._last_pose_out = -(1 << 62)
+        self.cell_px: float | None = None
+        """A cell's side in pixels as the camera sees it: at the latest frame's or lock's pose,
+        or while detecting as the latest blinking region suggests (``MarkerNotFound.cell_px``);
+        None until one was seen."""
+        self.detection_failure: str | None = None
+        """Why the latest detection attempt failed; None once locked."""
 
     # --- public ------------------------------------------------------------------------------
     def push(self, chunk: np.ndarray) -> list[Output]:
@@ -252,6 +271,8 @@ class Receiver:
                         found = nearest_turn(found, prior, self.config)
             return self._lock(found, now)
         except MarkerNotFound as exc:
+            if exc.cell_px is not None:
+                self.cell_px = exc.cell_px
             self._detection_failed(now, str(exc), time.process_time() - cpu0)
             return []
 
@@ -268,6 +289,7 @@ class Receiver:
         that failing ones take at most ``max_cpu_share`` of a core."""
         q = self.config.detector
         self.stats.detection_failures[reason] += 1
+        self.detection_failure = reason
         log.debug("detection at %d us: %s", now, reason)
         wait_us = q.retry_us
         if q.max_cpu_share is not None:
@@ -287,7 +309,7 @@ class Receiver:
                 recent = to_columns(recent, self.config.camera.undistort_table)
                 if tracker.capture(recent["xu"], recent["yu"], now):
                     T = tracker.T_cam_world
-        side = cell_side_px(self.config, T)
+        side = self.cell_px = cell_side_px(self.config, T)
         stride = read_stride(self.config, side)
         late, q = self.config.decoder.late_mark_px_per_cell, self.config.decoder
         framed = get_profile(self.config.profile).framed
@@ -300,7 +322,7 @@ class Receiver:
             next_frame=0 if found.moving else -int(window // self.config.frame_us) + 1,
             burst_frame_read_only=found.moving,
             late_mark=late is not None and side >= late,
-            probation=q.probation_frames if found.moving and framed else None,
+            probation=self._probation_frames(found.moving) if framed else None,
             turn_leads=deque(maxlen=q.turn_frames),
         )
         self._triage.reset(now, stride)
@@ -329,7 +351,17 @@ class Receiver:
             self._end_track()  # its poses never stood
             raise MarkerNotFound(reason)
         self.stats.lock_times_us.append(now)
+        self.detection_failure = None
         return out
+
+    def _probation_frames(self, moving: bool) -> int | None:
+        """Frames a framed lock has to pass a frame check (``DecoderParams``)."""
+        q = self.config.decoder
+        if moving:
+            return q.probation_frames
+        if q.still_probation_us is None:
+            return None
+        return max(2, math.ceil(q.still_probation_us / self.config.frame_us))
 
     def _postpone(self, found: Detection, until: int) -> list[Output]:
         """Lock on ``found`` again at ``until``, when its second frame is whole. Under motion
@@ -417,9 +449,10 @@ class Receiver:
 
     def _end_track(self) -> list[PoseEstimate]:
         """Back to detecting; the track's smoothed poses still held."""
+        poses = self._flush_poses()
         self.state = DETECTING
         self._track = None
-        return self._flush_poses()
+        return poses
 
     def _track_events(self, events: np.ndarray) -> list[Output]:
         out: list[Output] = []
@@ -457,6 +490,7 @@ class Receiver:
         out: list[Output] = []
         track = self._track
         reader, q = track.reader, self.config.decoder
+        framed = get_profile(self.config.profile).framed
         while self.state == TRACKING and reader.window(track.next_frame)[1] <= now:
             m = track.next_frame
             track.next_frame += 1
@@ -487,9 +521,15 @@ class Receiver:
             verified = self.stream.verified_bits
             with self._cpu("stream"):
                 messages = self.stream.push(read.bits, read.confidence)
-            frame = FrameOutput(read, True, self.stream.verified_bits - verified)
+            frame = FrameOutput(
+                read, True, self.stream.verified_bits - verified, self.stream.corrected
+            )
+            pose = self.pose_at(np.array([read.t_us]))[0]
+            self.cell_px = cell_side_px(self.config, pose)
             if frame.payload_bits:
-                self._verified = (read.t_us, self.pose_at(np.array([read.t_us]))[0])
+                self._verified = (read.t_us, pose)
+            if frame.payload_bits or (not framed and track.turn_leads[-1] >= q.min_turn_lead):
+                track.proven = True
             out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]
             if track.failed_probation(frame):
@@ -511,8 +551,13 @@ class Receiver:
     def _pose_output(self, t_us: int, T_cam_world: np.ndarray) -> list[PoseEstimate]:
         """Hand a tracked pose to the smoother; the smoothed poses it gives back."""
         self._last_pose_out = t_us
-        return [PoseEstimate(*p) for p in self._smoother.push(t_us, invert(T_cam_world))]
+        smoothed = self._smoother.push(t_us, invert(T_cam_world))
+        return [PoseEstimate(*p, verified=self._proven) for p in smoothed]
 
     def _flush_poses(self) -> list[PoseEstimate]:
-        """The smoothed poses still held: the track has ended."""
-        return [PoseEstimate(*p) for p in self._smoother.flush()]
+        """The smoothed poses still held: the track is ending."""
+        return [PoseEstimate(*p, verified=self._proven) for p in self._smoother.flush()]
+
+    @property
+    def _proven(self) -> bool:
+        return self._track is not None and self._track.proven

@@ -164,6 +164,40 @@ def settle(
     return target + (start - target) * decay
 
 
+LEAD_IN_CONTENTS = ("black", "bars")
+_BAR_PERIOD_CELLS = 8
+"""Cells from one bar of the lead-in's moving content to the next (half of them lit): each
+cell toggles every 4 refreshes, far from the marker's blink at half the refresh rate."""
+
+
+@dataclass(frozen=True)
+class LeadIn:
+    """What the screen shows over the marker's area before the marker's first refresh, for
+    ``refreshes`` refreshes from t = 0: black (a page still loading, a screen waking up) or
+    ``bars``, diagonal white bars sweeping one cell per refresh (unrelated moving content)."""
+
+    refreshes: int = 0
+    content: str = "black"
+
+    def __post_init__(self) -> None:
+        if self.refreshes < 0:
+            raise ValueError(f"lead-in refreshes must be >= 0, got {self.refreshes}")
+        if self.content not in LEAD_IN_CONTENTS:
+            raise ValueError(
+                f"unknown lead-in content {self.content!r}; valid: {', '.join(LEAD_IN_CONTENTS)}"
+            )
+
+    def frame(self, j: int, side: int) -> np.ndarray:
+        """Bool (side, side): the cells at lead-in refresh ``j`` (0 at t = 0)."""
+        if self.content == "black":
+            return np.zeros((side, side), bool)
+        rows, cols = np.mgrid[0:side, 0:side]
+        return (rows + cols + j) % _BAR_PERIOD_CELLS < _BAR_PERIOD_CELLS // 2
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
 @dataclass(frozen=True)
 class TimelineWindow:
     """Per-cell emitted luminance of refreshes ``k_first ..``: the level each refresh drives
@@ -177,21 +211,31 @@ class TimelineWindow:
 class DisplayTimeline:
     """What every marker cell emits at each refresh of the stream, computed on demand in order.
 
-    Refresh ``start_refresh`` starts scanning out at t = 0; earlier refreshes were shown before
-    (refreshes before the stream's first are blank frames), and the screen had settled on refresh
-    ``start_refresh - 1`` when the simulation starts.
+    Refresh ``start_refresh`` of the stream is the first the marker shows, after the
+    ``lead_in``'s refreshes: ``self.start_refresh``, ``start_refresh - lead_in.refreshes``,
+    starts scanning out at t = 0. Refreshes before the stream's first are blank frames, those
+    of the lead-in show its content, and the screen had settled on refresh
+    ``self.start_refresh - 1`` when the simulation starts.
     """
 
-    def __init__(self, encoder, display: Display, start_refresh: int = 0) -> None:
+    def __init__(
+        self, encoder, display: Display, start_refresh: int = 0, lead_in: LeadIn | None = None
+    ) -> None:
         self.encoder = encoder
         self.display = display
-        self.start_refresh = start_refresh
+        self.lead_in = lead_in or LeadIn()
+        self.marker_from = start_refresh
+        """The first refresh that shows the marker."""
+        self.start_refresh = start_refresh - self.lead_in.refreshes
+        """The refresh whose scan-out starts at t = 0."""
         self._states: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        first = start_refresh - 1
+        first = self.start_refresh - 1
         target = self.target(first)
         self._states[first] = (target, target.copy())
 
     def frame(self, k: int) -> np.ndarray:
+        if k < self.marker_from and self.lead_in.refreshes:
+            return self.lead_in.frame(k - self.start_refresh, self.encoder.geometry.side)
         if k < 0:
             return self.encoder.geometry.blank_frame
         return self.encoder.frame(k)

@@ -53,13 +53,15 @@ class Recording:
         return self.scene.camera.height
 
     def pose_at(self, t_us: np.ndarray) -> np.ndarray:
-        """(n, 4, 4) ground-truth T_world_cam (marker frame) at times ``t_us``."""
-        return self.trajectory.pose_at(np.asarray(t_us))
+        """(n, 4, 4) ground-truth T_world_cam (marker frame) at event times ``t_us``."""
+        return self.trajectory.pose_at(np.asarray(t_us) - self.scene.time_base_us)
 
     def refresh_times_us(self, k0: int, k1: int) -> np.ndarray:
-        """Times (us, float) at which refreshes ``k0 .. k1 - 1`` start scanning out (top row)."""
-        d = self.scene.display
-        return (np.arange(k0, k1, dtype=np.float64) - self.scene.start_refresh) * d.period_us
+        """Event times (us, float) at which refreshes ``k0 .. k1 - 1`` start scanning out (top
+        row)."""
+        s = self.scene
+        period = s.display.period_us
+        return (np.arange(k0, k1, dtype=np.float64) - s.first_refresh) * period + s.time_base_us
 
     def __iter__(self) -> Iterator[np.ndarray]:
         return _run(self)
@@ -83,11 +85,13 @@ def _run(rec: Recording) -> Iterator[np.ndarray]:
     )
     rec.readout = readout = Readout(sensor, rng_readout)
     pixels = PixelArray.draw(sensor, cam.width * cam.height, rng_pixels)
-    timeline = DisplayTimeline(scene.encoder, scene.display, scene.start_refresh)
-    renderer = _renderer(scene, rec, timeline, pixels)
+    timeline = DisplayTimeline(scene.encoder, scene.display, scene.start_refresh, scene.lead_in)
+    gain = scene.optics.gain(cam)
+    renderer = _renderer(scene, rec, timeline, pixels, gain)
     rad = scene.radiometry
     intensity = np.full(cam.width * cam.height, rad.wall / rad.white)
     intensity[renderer.pix_index] = renderer.irradiance_now() / rad.white
+    intensity *= gain  # the renderers' levels leave the vignetting out (``Optics.vignetting``)
     noise = BackgroundNoise(*background_rates(sensor, pixels, intensity))
     pending = empty_events()
     for t0 in range(0, rec.duration_us, rec.chunk_us):
@@ -102,14 +106,25 @@ def _run(rec: Recording) -> Iterator[np.ndarray]:
         rec.made += len(out)
         if readout.active:
             out = readout.apply(out)
-        yield np.ascontiguousarray(out, dtype=EVENT_DTYPE)
+        chunk = np.ascontiguousarray(out, dtype=EVENT_DTYPE)
+        if scene.time_base_us:
+            # The readout works on the simulation's clock; the camera's starts elsewhere.
+            # ``chunk`` may be a view of ``events``, apart from ``pending``.
+            chunk["t"] += scene.time_base_us
+        yield chunk
 
 
-def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: PixelArray):
+def _renderer(
+    scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: PixelArray, gain: np.ndarray
+):
+    """The renderer for the scene's camera. A pixel's log level ``ln(g J + dark)`` (``g``: its
+    ``gain``, the share of the scene's light ``J`` vignetting leaves) is rendered as
+    ``ln(J + dark / g)``: the constant ``ln g`` between them fires no event."""
     sensor, cam = scene.sensor, scene.camera
+    dark = scene.radiometry.dark / gain
     if not rec.trajectory.is_static:
         return MovingRenderer(
-            scene, rec.trajectory, timeline, pixels, rec.chunk_us, rec.duration_us
+            scene, rec.trajectory, timeline, pixels, rec.chunk_us, rec.duration_us, dark
         )
     T = rec.trajectory.pose_at(np.zeros(1))[0]
     pix_index = _pixels_near_marker(scene, T)
@@ -121,6 +136,7 @@ def _renderer(scene: Scene, rec: Recording, timeline: DisplayTimeline, pixels: P
         pixels.threshold_off,
         sensor.refractory_us,
         sensor.photoreceptor_hz,
+        dark[pix_index],
     )
     if scene.optics.psf_step_px is not None:
         offsets, weights = scene.optics.psf()

@@ -66,20 +66,23 @@ class _FixedPose:
 
 @dataclass(frozen=True)
 class StaticMotion:
-    """A camera on a tripod, ``distance_m`` from the marker centre, looking at it."""
+    """A camera on a tripod, ``distance_m`` from the marker centre, looking at it (``look_at``'s
+    angles)."""
 
     distance_m: float = 1.25
     tilt_deg: float = 0.0
     roll_deg: float = 0.0
+    elevation_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.distance_m <= 0:
             raise ValueError(f"distance must be positive, got {self.distance_m} m")
-        if abs(self.tilt_deg) >= 80:
-            raise ValueError(f"tilt must be within +-80 degrees, got {self.tilt_deg}")
+        _check_view(self.tilt_deg, self.elevation_deg)
 
     def trajectory(self, rig: Rig) -> Trajectory:
-        return _FixedPose(look_at(rig.centre, self.distance_m, self.tilt_deg, 0.0, self.roll_deg))
+        return _FixedPose(
+            look_at(rig.centre, self.distance_m, self.tilt_deg, self.elevation_deg, self.roll_deg)
+        )
 
     def to_dict(self) -> dict:
         return {"kind": "static", **asdict(self)}
@@ -101,19 +104,30 @@ _SHIFT_FRACTION = 0.7
 _FLOW_PROBE_S = 20.0
 
 
+def _check_view(tilt_deg: float, elevation_deg: float) -> None:
+    for name, angle in (("tilt", tilt_deg), ("elevation", elevation_deg)):
+        if abs(angle) >= 80:
+            raise ValueError(f"{name} must be within +-80 degrees, got {angle}")
+
+
 @dataclass(frozen=True)
 class HandHeldMotion:
-    """Smooth 6-DoF wander around a view of the marker centre, at a set mean marker flow."""
+    """Smooth 6-DoF wander around a view of the marker centre, at a set mean marker flow. The
+    view it wanders around is square-on unless turned by ``look_at``'s angles."""
 
     distance_m: float = 0.6
     flow_px_per_ms: float = 1.0
     seed: int = 0
     start_s: float = 0.0
     """Where on its path the wander starts: a camera that resumes after a gap carries on."""
+    tilt_deg: float = 0.0
+    elevation_deg: float = 0.0
+    roll_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.distance_m <= 0:
             raise ValueError(f"distance must be positive, got {self.distance_m} m")
+        _check_view(self.tilt_deg, self.elevation_deg)
         if self.flow_px_per_ms <= 0:
             raise ValueError(
                 f"flow must be positive, got {self.flow_px_per_ms} px/ms "
@@ -167,9 +181,9 @@ class _Wander:
         return look_at(
             self.rig.centre,
             m.distance_m * (1 + _DEPTH_FRACTION * s[3]),
-            _ORBIT_DEG * s[0],
-            _ORBIT_DEG * s[1],
-            _ROLL_DEG * s[2],
+            m.tilt_deg + _ORBIT_DEG * s[0],
+            m.elevation_deg + _ORBIT_DEG * s[1],
+            m.roll_deg + _ROLL_DEG * s[2],
         )
 
     def pose_at(self, t_us: np.ndarray) -> np.ndarray:

@@ -88,7 +88,8 @@ _NO_PWM = (0.0, 0.0)
 #   geo   ``plane_geometry`` of the layout
 #   disp  (period, scan, tau_rise, tau_fall, first) in us; ``first``: the row of ``lum`` that
 #         holds refresh ``start_refresh`` (the one whose scan-out starts at t = 0)
-#   rad   (cell ambient, black screen, wall, dark floor) luminances
+#   rad   (cell ambient, black screen, wall, dark floor) luminances; the kernels that visit
+#         pixels put each one's own dark floor (``dark``, per pixel) in the last place
 #   lum   (2, refreshes, cells): the level each refresh of the window drives a cell towards,
 #         and its level at the switch
 #   path  (sub-steps + 1, 13): T_world_cam as ``flat_poses``, then the time
@@ -472,6 +473,7 @@ def _moving_window(
     offsets,
     screen,
     lum,
+    dark,
     state,
     done,
     rfr,
@@ -490,7 +492,7 @@ def _moving_window(
     x0, x1, y0, y1 = box
     reach_m, step_m = bounds
     w, q, last = blocks
-    geo = screen[0]
+    geo, disp, rad = screen
     if not closed_form:
         reach_m = np.inf
     width = rays.shape[1]
@@ -512,6 +514,7 @@ def _moving_window(
         if done[i] >= window_end:
             continue
         m = ends[min(q - (w + i // _STAGGER_RUN) % q, last)]
+        own = (geo, disp, (rad[0], rad[1], rad[2], dark[i]))
         saved = (state[REF, i], state[LAST, i], state[LEVEL, i])
         n_before = n
         rx, ry = rays[y, x, 0], rays[y, x, 1]
@@ -547,7 +550,7 @@ def _moving_window(
                     counts[0],
                     nd_a,
                     path,
-                    screen,
+                    own,
                     lum,
                     i,
                     state,
@@ -557,11 +560,11 @@ def _moving_window(
                 )
             nd = _merge(regs, counts, nd_a, nd_b, merged, w0, w1)
             v = _row_of(py_b, geo)
-            if closed_form and _same_light(t_a, t_b, v, merged, w0, w1, nd, screen[1], lum):
+            if closed_form and _same_light(t_a, t_b, v, merged, w0, w1, nd, disp, lum):
                 t_run = t_a  # a run of the new content from here on sees the same light
             else:
                 n = _sampled_step(
-                    t_a, t_b, v, merged, w0, w1, nd, times, screen, lum, i, state, rfr, out, n
+                    t_a, t_b, v, merged, w0, w1, nd, times, own, lum, i, state, rfr, out, n
                 )
                 t_run = t_b
             regs[0, :nd_b] = regs[1, :nd_b]
@@ -578,7 +581,7 @@ def _moving_window(
                 counts[0],
                 nd_a,
                 path,
-                screen,
+                own,
                 lum,
                 i,
                 state,
@@ -594,12 +597,12 @@ def _moving_window(
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _fill_levels(path, rays, offsets, screen, lum, level):
-    """Log irradiance of every pixel at the path's start, without events (the sensor's start
-    state)."""
+def _fill_levels(path, rays, offsets, screen, lum, dark, level):
+    """Log irradiance of every pixel (its own ``dark`` floor) at the path's start, without
+    events (the sensor's start state)."""
     h, w = rays.shape[0], rays.shape[1]
     s = offsets.shape[0]
-    geo = screen[0]
+    geo, disp, rad = screen
     regs = np.empty(s, np.int64)
     counts = np.empty(s)
     weights = np.empty(s)
@@ -610,8 +613,9 @@ def _fill_levels(path, rays, offsets, screen, lum, level):
             nd, _ = _content(rx, ry, path, 0, 0, 0.0, 0.0, offsets, geo, regs, counts)
             for d in range(nd):
                 weights[d] = counts[d] / s
+            own = (geo, disp, (rad[0], rad[1], rad[2], dark[y * w + x]))
             level[y * w + x] = _log_irradiance(
-                path[0, _T], _row_of(py, geo), 0.0, regs, weights, weights, nd, screen, lum
+                path[0, _T], _row_of(py, geo), 0.0, regs, weights, weights, nd, own, lum
             )
 
 
@@ -660,7 +664,9 @@ class MovingRenderer:
         pixels: PixelArray,
         chunk_us: int,
         duration_us: int,
+        dark: np.ndarray | None = None,
     ) -> None:
+        """``dark``: each pixel's dark floor (row-major), ``scene.radiometry.dark`` if None."""
         cam = scene.camera
         self.chunk_us, self.duration_us = chunk_us, duration_us
         self.blocks = max(1, round(BLOCK_US / chunk_us))
@@ -683,9 +689,13 @@ class MovingRenderer:
         self._rad = (rad.screen_ambient, rad.screen_black, rad.wall, rad.dark)
         self.outline = lay.screen_corners()
         self.pix_index = np.arange(cam.width * cam.height)
+        self.dark = np.full(cam.width * cam.height, rad.dark) if dark is None else dark
         level = np.empty(cam.width * cam.height)
         win = timeline.window(timeline.start_refresh - 1, timeline.start_refresh)
-        _fill_levels(self._path(np.zeros(2)), self.rays, self.offsets, *self._screen(win), level)
+        screen, lum = self._screen(win)
+        _fill_levels(
+            self._path(np.zeros(2)), self.rays, self.offsets, screen, lum, self.dark, level
+        )
         self.state = pixel_state(level, pixels.threshold_on, pixels.threshold_off)
         self.done = np.zeros(cam.width * cam.height)
         """Time (us) up to which each pixel is rendered."""
@@ -747,6 +757,7 @@ class MovingRenderer:
                 self.offsets,
                 plan.screen,
                 plan.lum,
+                self.dark,
                 self.state,
                 self.done,
                 self.refractory,

@@ -1,4 +1,4 @@
-"""Where each sensor pixel looks: lens rays, pixel-area integration and lens blur.
+"""Where each sensor pixel looks: lens rays, pixel-area integration, lens blur and vignetting.
 
 A pixel's irradiance is the mean scene luminance over a small grid of sample rays around its
 centre. The grid spacing is chosen so the grid's spatial variance equals that of the pixel's
@@ -32,6 +32,11 @@ class Optics:
     defocus disk), tails included, on a grid of this pitch, each sample weighted by the light
     that lands there (``psf``). None: the footprint grid of ``supersample`` rays, spaced to the
     PSF's variance (a moving camera always takes that)."""
+    vignetting: float = 0.0
+    """Share of the scene's light lost at the image's corners: a pixel at distance r from the
+    principal point gets ``1 - vignetting * (r / r_corner)^2`` of it (the farthest corner's
+    r_corner). It dims the scene, not the sensor's dark floor, so a pixel's contrast between
+    dark levels and its shot noise change while its events between bright ones barely do."""
 
     def __post_init__(self) -> None:
         if self.blur_px < 0:
@@ -42,6 +47,8 @@ class Optics:
             raise ValueError(f"defocus_px must be >= 0, got {self.defocus_px}")
         if self.psf_step_px is not None and not 0.2 <= self.psf_step_px <= 1.0:
             raise ValueError(f"psf_step_px must be 0.2 ... 1 px or None, got {self.psf_step_px}")
+        if not 0.0 <= self.vignetting < 1.0:
+            raise ValueError(f"vignetting must be in [0, 1), got {self.vignetting}")
 
     @classmethod
     def preset(cls, sensor_preset: str) -> Optics:
@@ -91,6 +98,12 @@ class Optics:
         gx, gy = np.meshgrid(g, g)
         lit = counts > 0
         return np.column_stack([gx.ravel(), gy.ravel()])[lit], counts[lit] / draws
+
+    def gain(self, camera: CameraModel) -> np.ndarray:
+        """(height * width,) share of the scene's light each pixel gets (row-major)."""
+        ys, xs = np.divmod(np.arange(camera.width * camera.height), camera.width)
+        r2 = (xs - camera.K[0, 2]) ** 2 + (ys - camera.K[1, 2]) ** 2
+        return 1.0 - self.vignetting * r2 / r2.max()
 
     def to_dict(self) -> dict:
         return asdict(self)

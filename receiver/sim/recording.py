@@ -2,10 +2,11 @@
 
 - ``events.<ext>``: the event stream (any format ``eventocc.receiver.io.write_events`` knows;
   EVT 3.0 ``.raw`` by default), written chunk by chunk;
-- ``poses.tum``: ground-truth T_world_cam (marker frame) at ``pose_hz``;
+- ``poses.tum``: ground-truth T_world_cam (marker frame) at ``pose_hz``, on the events' clock;
 - ``frames.npz``: every display refresh in the recording: ``refresh`` index, ``time_us`` (start
-  of its scan-out at the top screen row), ``is_data`` and, for data refreshes, ``data_refresh``
-  and ``payload_bits`` (n, N, N);
+  of its scan-out at the top screen row, on the events' clock), ``is_data`` (False for a
+  lead-in's refreshes) and, for data refreshes, ``data_refresh`` and ``payload_bits``
+  (n, N, N);
 - ``scene.json``: ``Scene.describe()``, enough to rerun the simulation.
 """
 
@@ -35,6 +36,7 @@ def write_recording(
     out.mkdir(parents=True, exist_ok=True)
     (out / "scene.json").write_text(json.dumps(rec.scene.describe(), indent=2))
     t_pose = np.arange(0, rec.duration_us + 1, 1e6 / pose_hz).round().astype(np.int64)
+    t_pose += rec.scene.time_base_us
     write_tum(out / "poses.tum", t_pose, rec.pose_at(t_pose))
     _write_frames(rec, out / "frames.npz")
     chunks: Iterable[np.ndarray] = rec
@@ -48,10 +50,12 @@ def _write_frames(rec: Recording, path: Path) -> None:
     scene = rec.scene
     enc = scene.encoder
     period = scene.display.period_us
-    k0 = scene.start_refresh
+    k0 = scene.first_refresh
     k1 = k0 + int(np.ceil(rec.duration_us / period))
     refresh = np.arange(k0, k1)
-    is_data = np.array([enc.is_data_frame(int(k)) for k in refresh], dtype=bool)
+    is_data = np.array(
+        [k >= scene.start_refresh and enc.is_data_frame(int(k)) for k in refresh], dtype=bool
+    )
     data = refresh[is_data]
     n = enc.geometry.cells
     bits = (

@@ -505,9 +505,11 @@ def _weighted_footprints(
     sample_weight: np.ndarray,
     layout: ScreenLayout,
     rad: Radiometry,
+    dark: np.ndarray,
 ):
     """``StaticRenderer``'s per-pixel tables (pixels, ptr, cells, weights, constant light,
-    scan-out delay) for footprints of weighted samples, pixels that see no cell left out."""
+    scan-out delay) for footprints of weighted samples, pixels that see no cell left out;
+    ``dark``: each pixel's (of ``pix_index``) dark floor."""
     kept, ptrs, cells, weights, const, v = [], [np.zeros(1, np.int64)], [], [], [], []
     offset = 0
     for lo in range(0, len(pix_index), _FOOTPRINT_CHUNK):
@@ -524,7 +526,7 @@ def _weighted_footprints(
         weights.append(w)
         on_cells, on_screen, on_wall = _region_shares(region, sample_weight)
         const.append(
-            rad.dark
+            dark[lo : lo + _FOOTPRINT_CHUNK][sees]
             + rad.screen_ambient * on_cells
             + rad.screen_black * on_screen
             + rad.wall * on_wall
@@ -558,15 +560,20 @@ class StaticRenderer:
         c_off: np.ndarray,
         refractory_us: float,
         photoreceptor_hz: float = 0.0,
+        dark: np.ndarray | None = None,
         sample_weights: np.ndarray | None = None,
     ) -> None:
         """``sample_points``: (n, S, 2) marker-plane points of each pixel's footprint samples,
         equally weighted; or, with ``sample_weights`` (S,), a function giving them for a chunk
-        of ``pix_index`` (a sampled point-spread function has many samples per pixel)."""
+        of ``pix_index`` (a sampled point-spread function has many samples per pixel).
+        ``dark``: each pixel's (of ``pix_index``) dark floor, ``radiometry.dark`` if None."""
+        dark = np.full(len(pix_index), radiometry.dark) if dark is None else dark
         if sample_weights is not None:
             assert callable(sample_points)
             self.pix_index, self.ptr, self.cells, self.weights, self.pix_const, self.pix_v = (
-                _weighted_footprints(pix_index, sample_points, sample_weights, layout, radiometry)
+                _weighted_footprints(
+                    pix_index, sample_points, sample_weights, layout, radiometry, dark
+                )
             )
         else:
             assert not callable(sample_points)
@@ -580,7 +587,7 @@ class StaticRenderer:
             # Constant part of each pixel's irradiance: reflection on its cell samples, the
             # black screen and wall it also sees, and the dark floor.
             self.pix_const = (
-                rad.dark
+                dark[sees_marker]
                 + rad.screen_ambient * (region >= 0).sum(1) / s
                 + rad.screen_black * (region == SCREEN).sum(1) / s
                 + rad.wall * (region == WALL).sum(1) / s

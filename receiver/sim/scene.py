@@ -10,7 +10,12 @@ import numpy as np
 
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
-from eventocc.receiver.sim.display import LUX_TO_NITS_PER_REFLECTANCE, Display, ScreenLayout
+from eventocc.receiver.sim.display import (
+    LUX_TO_NITS_PER_REFLECTANCE,
+    Display,
+    LeadIn,
+    ScreenLayout,
+)
 from eventocc.receiver.sim.motion import Motion, Rig, StaticMotion, motion_from_dict
 from eventocc.receiver.sim.optics import Optics
 from eventocc.receiver.sim.render import Radiometry
@@ -31,7 +36,13 @@ class Scene:
     wall_reflectance: float = 0.5
     """Diffuse reflectance of the wall around the screen (painted office wall)."""
     start_refresh: int = 0
-    """Display refresh whose scan-out starts at t = 0 (join the stream mid-way)."""
+    """The stream's first refresh on the screen (join the stream mid-way): its scan-out starts
+    at t = 0, or where the lead-in ends."""
+    lead_in: LeadIn = field(default_factory=LeadIn)
+    """What the screen shows before the marker appears (nothing by default)."""
+    time_base_us: int = 0
+    """Event time of the simulation's t = 0: a camera's clock starts anywhere. Ground truth
+    (``Recording.pose_at``, ``refresh_times_us``) is on the same clock."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -41,6 +52,18 @@ class Scene:
             raise ValueError(f"wall_reflectance must be in [0, 1], got {self.wall_reflectance}")
         if self.start_refresh < 0:
             raise ValueError(f"start_refresh must be >= 0, got {self.start_refresh}")
+        if self.time_base_us < 0:
+            raise ValueError(f"time_base_us must be >= 0, got {self.time_base_us}")
+
+    @property
+    def first_refresh(self) -> int:
+        """The display refresh whose scan-out starts at t = 0 (a lead-in's first)."""
+        return self.start_refresh - self.lead_in.refreshes
+
+    @property
+    def marker_appears_us(self) -> float:
+        """Event time at which the marker's first refresh starts scanning out (top row)."""
+        return self.time_base_us + self.lead_in.refreshes * self.display.period_us
 
     @cached_property
     def layout(self) -> ScreenLayout:
@@ -103,6 +126,8 @@ class Scene:
             "optics": self.optics.to_dict(),
             "wall_reflectance": self.wall_reflectance,
             "start_refresh": self.start_refresh,
+            "lead_in": self.lead_in.to_dict(),
+            "time_base_us": self.time_base_us,
             "seed": self.seed,
             "cell_px": self.cell_px(),
         }
@@ -132,6 +157,8 @@ class Scene:
             optics=Optics(**d["optics"]),
             wall_reflectance=d["wall_reflectance"],
             start_refresh=d["start_refresh"],
+            lead_in=LeadIn(**d.get("lead_in", {})),
+            time_base_us=d.get("time_base_us", 0),
             seed=d["seed"],
         )
 

@@ -6,7 +6,7 @@ import asyncio
 import contextlib
 
 from fastapi import APIRouter
-from fastapi.websockets import WebSocket, WebSocketDisconnect
+from fastapi.websockets import WebSocket
 
 from eventocc.server.api.deps import LiveDep
 
@@ -37,6 +37,6 @@ async def dashboard_socket(websocket: WebSocket, live: LiveDep) -> None:
 
 
 async def _until_closed(websocket: WebSocket) -> None:
-    with contextlib.suppress(WebSocketDisconnect):
-        while True:
-            await websocket.receive_text()  # viewers send nothing we need; this notices them go
+    """Viewers send nothing we need, text or binary: this only notices them go."""
+    while (await websocket.receive())["type"] != "websocket.disconnect":
+        pass

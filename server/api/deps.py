@@ -11,11 +11,11 @@ from starlette.requests import HTTPConnection
 
 from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
 from eventocc.server.api.encoding import EncoderCache
+from eventocc.server.api.schemas import MESSAGE_ID_PATTERN
 from eventocc.server.api.state import LiveState
+from eventocc.server.api.uploads import UploadBudget
 from eventocc.server.settings import Settings
 from eventocc.server.store import MessageStore, StoredMessage
-
-MESSAGE_ID_PATTERN = r"^[0-9a-f]{12}$"
 
 
 def get_store(request: Request) -> MessageStore:
@@ -30,6 +30,10 @@ def get_encoders(request: Request) -> EncoderCache:
     return request.app.state.encoders
 
 
+def get_upload_budget(request: Request) -> UploadBudget:
+    return request.app.state.upload_budget
+
+
 def get_live(connection: HTTPConnection) -> LiveState:
     """Also for websockets, hence the connection rather than a request."""
     return connection.app.state.live
@@ -39,6 +43,7 @@ StoreDep = Annotated[MessageStore, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 EncodersDep = Annotated[EncoderCache, Depends(get_encoders)]
 LiveDep = Annotated[LiveState, Depends(get_live)]
+UploadBudgetDep = Annotated[UploadBudget, Depends(get_upload_budget)]
 
 
 def get_message(

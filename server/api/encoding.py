@@ -10,6 +10,7 @@ from functools import lru_cache
 
 from fastapi import HTTPException, status
 
+from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import StreamEncoder
 from eventocc.server.api.schemas import NOMINAL_REFRESH_HZ, MessagePublic
 from eventocc.server.store import MessageStore, StoredMessage
@@ -40,16 +41,18 @@ class EncoderCache:
 
 def link_facts(encoder: StreamEncoder) -> dict:
     """What the encoder puts on screen, as stored with the message at upload."""
-    bits = encoder.geometry.bits_per_frame
-    data_frames_per_refresh = encoder.symbols / encoder.cycle  # blank and key frames carry none
-    return {
-        "frames_per_loop": encoder.cycle,
-        "bits_per_frame": bits,
-        "bit_rate_60hz": bits * NOMINAL_REFRESH_HZ * data_frames_per_refresh,
-    }
+    return {"frames_per_loop": encoder.cycle, "bits_per_frame": encoder.geometry.bits_per_frame}
+
+
+def bit_rate_60hz(profile: str, bits_per_frame: int) -> float:
+    """The profile's raw cell bits per second at 60 Hz, to 0.1 bit/s: one figure for every
+    message of a profile and cell count (computed, not stored, so older uploads agree)."""
+    return round(bits_per_frame * NOMINAL_REFRESH_HZ * get_profile(profile).data_share, 1)
 
 
 def describe(message: StoredMessage) -> MessagePublic:
+    facts = {**message.facts}
+    facts["bit_rate_60hz"] = bit_rate_60hz(message.profile, facts["bits_per_frame"])
     return MessagePublic(
         id=message.id,
         name=message.name,
@@ -58,5 +61,5 @@ def describe(message: StoredMessage) -> MessagePublic:
         profile=message.profile,
         cells=message.cells,
         created=message.created,
-        **message.facts,
+        **facts,
     )

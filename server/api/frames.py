@@ -8,13 +8,12 @@ import numpy as np
 from fastapi import APIRouter, Query, Response
 
 from eventocc.server.api.deps import CellsQuery, EncodersDep, MessageDep
-from eventocc.server.api.schemas import ProfileName
+from eventocc.server.api.schemas import MAX_FRAME_INDEX, ProfileName
 
 router = APIRouter(prefix="/messages", tags=["frames"])
 
 MAX_BATCH = 600
 """Frames per request: 10 s at 60 Hz, a few MB at the largest marker."""
-MAX_FRAME_INDEX = 2**31 - 1
 
 FRAMES_FORMAT = """\
 Frames `start .. start+count-1`, each the **full marker cell matrix** (every cell, locators and

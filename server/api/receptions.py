@@ -10,6 +10,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel
 
 from eventocc.server.api.deps import LiveDep
+from eventocc.server.api.downloads import download
 from eventocc.server.receptions import Reception
 
 RECEPTION_ID_PATTERN = r"^[0-9a-f]{12}$"
@@ -26,6 +27,9 @@ class ReceptionPublic(BaseModel):
     goodput_bps: float | None
     message_id: str | None
     received: datetime
+    verified: bool | None
+    """The bytes hash to the sha256 their sender sent in-band; False: unchecked (``paper``);
+    None: stored before this was recorded."""
     url: str
 
     @classmethod
@@ -66,8 +70,5 @@ def read_reception(reception: ReceptionDep) -> ReceptionPublic:
 
 @router.get("/{reception_id}/content", response_class=Response)
 def download_reception(reception: ReceptionDep, live: LiveDep) -> Response:
-    return Response(
-        live.receptions.content(reception),
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{reception.name or reception.id}"'},
-    )
+    """The bytes under the name the receiver decoded (the transmitter's, any characters)."""
+    return download(live.receptions.content(reception), reception.name or reception.id)

@@ -3,6 +3,7 @@ receptions store, the receivers connected now, the transmitter's latest status a
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -17,13 +18,27 @@ from eventocc.server.store import MessageStore
 GOODPUT_WINDOW_S = 60.0
 
 
+@dataclass(eq=False)
+class ReceiverSession:
+    """One receiver's connection, the only one allowed to speak for it while it lasts."""
+
+    hello: Hello
+    replaced: asyncio.Event = field(default_factory=asyncio.Event)
+    """Set when a newer connection of the same receiver took over."""
+
+    @property
+    def receiver(self) -> str:
+        """The receiver's public id, under which everything it sends is kept and shown."""
+        return self.hello.public_id
+
+
 @dataclass
 class LiveState:
     hub: Hub
     receptions: ReceptionStore
     messages: MessageStore
-    receivers: dict[str, Hello] = field(default_factory=dict)
-    """Receivers connected right now, by id."""
+    receivers: dict[str, ReceiverSession] = field(default_factory=dict)
+    """The connection of each receiver connected right now, by public id."""
     transmitter: TransmitterStatusPublic | None = None
     """The latest playback status a transmitter page reported (news only: not stored)."""
     frames_decoded: int = 0
@@ -46,8 +61,31 @@ class LiveState:
         self.transmitter = latest
         self.hub.publish(transmitter_update(latest), topic="transmitter")
 
+    def claim(self, hello: Hello) -> ReceiverSession:
+        """Bind the receiver to a new connection. Only the receiver itself knows its secret
+        id, so a second connection with it is that receiver again, restarted while the server
+        still holds its old connection (dead, or about to notice): the newer one wins."""
+        session = ReceiverSession(hello)
+        older = self.receivers.get(session.receiver)
+        if older is not None:
+            older.replaced.set()
+        self.receivers[session.receiver] = session
+        self.announce_receivers()
+        return session
+
+    def release(self, session: ReceiverSession) -> bool:
+        """Forget a connection that ended; False if a newer one had replaced it."""
+        if self.receivers.get(session.receiver) is not session:
+            return False
+        del self.receivers[session.receiver]
+        self.hub.forget(f"{session.receiver}:")
+        self.announce_receivers()
+        return True
+
     def announce_receivers(self) -> None:
-        receivers = [h.model_dump(mode="json", exclude={"token"}) for h in self.receivers.values()]
+        receivers = [
+            {"receiver": s.receiver, "version": s.hello.version} for s in self.receivers.values()
+        ]
         self.hub.publish({"type": "receivers", "receivers": receivers}, topic="receivers")
 
 

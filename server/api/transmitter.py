@@ -15,6 +15,7 @@ from pydantic import ValidationError
 
 from eventocc.server.api.deps import LiveDep
 from eventocc.server.api.schemas import TransmitterStatus, TransmitterStatusPublic
+from eventocc.server.api.sockets import MalformedFrame, receive_text, refuse
 
 router = APIRouter(prefix="/transmitter", tags=["transmitter"])
 sockets = APIRouter(tags=["transmitter"])
@@ -40,15 +41,22 @@ def read_transmitter_status(live: LiveDep) -> TransmitterStatusPublic:
 
 @sockets.websocket("/transmitter")
 async def transmitter_socket(websocket: WebSocket, live: LiveDep) -> None:
+    """Each text frame a status; a bad one is answered ``{"type": "error", "detail": [...]}``
+    and changes nothing."""
     await websocket.accept()
     try:
         while True:
-            text = await websocket.receive_text()
+            text = await receive_text(websocket)
             try:
                 report = TransmitterStatus.model_validate_json(text)
             except ValidationError as error:
-                await websocket.send_json({"type": "error", "detail": error.errors()[:3]})
+                problems = error.errors(
+                    include_url=False, include_context=False, include_input=False
+                )
+                await websocket.send_json({"type": "error", "detail": problems[:3]})
                 continue
             live.set_transmitter(stamped(report))
     except WebSocketDisconnect:
         pass
+    except MalformedFrame as error:
+        await refuse(websocket, error.code, f"{error}")

@@ -1,0 +1,288 @@
+"""The randomized scene suite: its drawing, its scoring, and a few easy scenes end to end.
+
+The receiver's targets over the whole suite are not asserted here: ``python -m bench.scenes``
+measures them (docs/BENCHMARKS.md)."""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bench.scenes.draw import (
+    CELLS,
+    LOG_UNIFORM,
+    RANGES,
+    REFRESH_HZ,
+    SENSORS,
+    SceneDraw,
+    draw,
+)
+from bench.scenes.run import (
+    earlier_results,
+    on_per_transition,
+    pose_errors,
+    reason_kind,
+    run_scene,
+    score_poses,
+)
+from bench.scenes.summary import failed, parameter_table, summarise, targets
+from eventocc.occ.marker import MarkerGeometry
+from eventocc.receiver.poses import make_pose
+from eventocc.receiver.sim.motion import project_points
+
+DRAWS = [draw(7, i) for i in range(150)]
+
+
+def test_a_scene_is_drawn_from_its_seed_and_index_alone():
+    assert draw(7, 3) == DRAWS[3]
+    assert draw(8, 3) != DRAWS[3]
+    assert SceneDraw.from_dict(DRAWS[3].to_dict()) == DRAWS[3]
+
+
+def _drawn(d: SceneDraw, name: str) -> float | None:
+    """The value ``d`` drew for range ``name`` (None where the scene has none)."""
+    special = {
+        "flow_px_per_ms": d.flow_px_per_ms if d.moving else None,
+        "threshold": d.threshold_on,
+        "tangential": d.p1,
+        "jitter_share": d.jitter_us / d.latency_us,
+        "lead_in_s": d.lead_in_s,
+        "time_base_us": d.time_base_us or None,
+        "pwm_duty": d.pwm_duty if d.pwm_hz is not None else None,
+    }
+    return special[name] if name in special else getattr(d, name)
+
+
+@functools.cache
+def _pwm_draws() -> list[SceneDraw]:
+    """Scenes with a PWM backlight (small still markers only, so a few in a hundred)."""
+    return [d for d in (draw(7, i) for i in range(900)) if d.pwm_hz is not None]
+
+
+@pytest.mark.parametrize("name", sorted(RANGES))
+def test_the_draws_span_each_range(name):
+    lo, hi = RANGES[name]
+    draws = _pwm_draws() if name.startswith("pwm_") else DRAWS
+    values = np.array([v for d in draws if (v := _drawn(d, name)) is not None], float)
+    assert len(values) >= 10
+    # Lead-in refreshes round the drawn seconds to whole refreshes.
+    slack = 0.5 / min(REFRESH_HZ) if name == "lead_in_s" else 1e-9
+    assert values.min() >= lo - slack and values.max() <= hi + slack
+    scale = np.log if name in LOG_UNIFORM else np.asarray
+    quarter = (scale(hi) - scale(lo)) / 4
+    assert scale(values.min()) < scale(lo) + quarter
+    assert scale(values.max()) > scale(hi) - quarter
+
+
+def test_the_draws_cover_every_choice():
+    assert {d.profile for d in DRAWS} == {"paper", "robust", "fast"}
+    assert {d.refresh_hz for d in DRAWS} == set(REFRESH_HZ)
+    assert {d.lead_in_content for d in DRAWS} == {"black", "bars"}
+    assert {(d.width, d.height) for d in DRAWS} == set(SENSORS)
+    assert {d.moving for d in DRAWS} == {True, False}
+    cells = {d.cells for d in DRAWS}
+    assert min(cells) == CELLS[0] and max(cells) >= 112
+    assert any(d.pwm_hz for d in DRAWS) and any(d.max_rate_mev_s for d in DRAWS)
+    assert not any(d.pwm_hz for d in DRAWS if d.moving)  # simulated for still cameras only
+    assert all(d.start_refresh == 0 for d in DRAWS if d.profile == "paper")
+
+
+@pytest.mark.parametrize("index", range(0, 150, 15))
+def test_a_drawn_scene_shows_its_pixels_per_cell_within_its_sensor(index):
+    d = DRAWS[index]
+    scene = d.scene()
+    # A hand-held wander starts up to 8% nearer or further than its mean distance.
+    assert scene.cell_px() == pytest.approx(d.cell_px, rel=0.1 if d.moving else 1e-9)
+    T = scene.motion.trajectory(scene.rig).pose_at(np.zeros(1))[0]
+    corners = project_points(scene.camera, T, scene.rig.corners)
+    assert np.all(corners >= 0) and np.all(corners < [d.width, d.height])
+    assert scene.marker_appears_us == pytest.approx(d.time_base_us + d.lead_in_s * 1e6)
+
+
+def _poses(offsets_m: list[float], turns_deg: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    truth = np.stack([make_pose(np.eye(3), [0.1 * k, 0.0, -0.6]) for k in range(len(offsets_m))])
+    est = truth.copy()
+    for k, (dx, deg) in enumerate(zip(offsets_m, turns_deg, strict=True)):
+        est[k, :3, 3] += [0.0, dx, 0.0]
+        est[k, :3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+    return est, truth
+
+
+def test_a_pose_stream_on_the_truth_scores_nothing_off():
+    position, rotation = pose_errors(*_poses([0.0] * 5, [0.0] * 5))
+    s = score_poses(position, rotation)
+    assert s.poses == 5 and s.off_share == 0.0 and s.wrong == 0
+    assert s.max_error_cm == pytest.approx(0.0, abs=1e-9)
+
+
+def test_shifted_and_turned_poses_score_as_far_off_as_they_are():
+    position, rotation = pose_errors(
+        *_poses([0.03, 0.0, 0.06, 0.01, 0.0, 0.0], [0.0, 3.0, 0.0, 1.0, 0.0, 0.0])
+    )
+    assert position == pytest.approx([0.03, 0.0, 0.06, 0.01, 0.0, 0.0], abs=1e-12)
+    assert rotation == pytest.approx([0.0, 3.0, 0.0, 1.0, 0.0, 0.0], abs=1e-6)
+    s = score_poses(position, rotation)
+    assert s.off_share == pytest.approx(3 / 6)  # 3 cm, 3 deg and 6 cm; not 1 cm, 1 deg
+    assert s.wrong_share == pytest.approx(1 / 6) and s.wrong == 1
+    assert s.max_error_cm == pytest.approx(6.0)
+    assert score_poses(np.empty(0), np.empty(0)).off_share is None
+
+
+def test_failure_reasons_add_up_without_their_numbers():
+    a = "spatial: no inner-locator 'L' found (score 0.47); check --cells"
+    b = "spatial: no inner-locator 'L' found (score 0.57); check --cells"
+    assert (
+        reason_kind(a)
+        == reason_kind(b)
+        == "spatial: no inner-locator 'L' found (score #); check --cells"
+    )
+    assert (
+        reason_kind("only 41% of the events near the ring") == "only # of the events near the ring"
+    )
+
+
+def test_on_events_per_transition_count_each_pixels_bursts():
+    # Pixel 1: four transitions of 3 ON events; pixel 2: of 5; pixel 3: noise, two lone events.
+    t, pix = [], []
+    for k in range(4):
+        t += [k * 33_000 + j * 200 for j in range(3)] + [k * 33_000 + j * 100 for j in range(5)]
+        pix += [1] * 3 + [2] * 5
+    t += [5_000, 70_000]
+    pix += [3, 3]
+    median, p90 = on_per_transition(np.array(t), np.array(pix), 3000)
+    assert median == 4.0  # four bursts of 3 and four of 5
+    assert p90 == 5.0
+
+
+def _result(cell_px: float, flow: float, lock_ms: float | None, delivered: bool, off: float):
+    return {
+        "draw": replace(DRAWS[0], cell_px=cell_px, flow_px_per_ms=flow).to_dict(),
+        "first_lock_ms": lock_ms,
+        "lock_ok": lock_ms is not None and 0 <= lock_ms <= 150,
+        "locked_before_marker": lock_ms is not None and lock_ms < 0,
+        "first_lock_wrong": False,
+        "pose_poses": 1000 if lock_ms is not None else 0,
+        "pose_off_share": off if lock_ms is not None else None,
+        "pose_wrong": 0,
+        "pose_max_error_cm": 1.0,
+        "delivered": delivered,
+        "wrong_messages": 0,
+        "ber": 0.001,
+        "realtime_factor": 1.5,
+        "on_per_transition": 4.0,
+        "detection_failures": {"spatial: no inner-locator 'L' found (score 0.50)": 7},
+        "sim_cpu_s": 1.0,
+        "receiver_cpu_s": 0.5,
+    }
+
+
+def test_the_targets_count_the_scenes_in_their_range_only():
+    results = [
+        _result(8.0, 0.5, 80.0, True, 0.0),
+        _result(8.0, 0.0, 200.0, True, 0.0),  # late
+        _result(12.0, 1.0, 90.0, False, 0.01),  # no message, 1% of poses off
+        _result(5.0, 0.5, None, False, 0.0),  # below 6 px per cell: not counted
+        _result(8.0, 1.5, None, False, 0.0),  # above 1 px/ms: not counted
+    ]
+    text, covered = targets(results)
+    assert len(covered) == 3
+    assert "(3 scenes): locked within 150 ms of the marker appearing in 67%" in text
+    assert "99.67% of 3,000 published poses" in text
+    assert "message delivered in 67%" in text
+    assert failed(results[0]) == [] and failed(results[1]) == ["lock"]
+    assert failed(results[2]) == ["poses", "message"]
+    assert "pixels per cell" in parameter_table(results)
+    assert "**In short:**" in summarise(results, wall_s=60.0, jobs=2)
+
+
+def _easy(index: int, **changes) -> SceneDraw:
+    """A drawn scene made easy: a quiet sensor and a plain screen, square-on at 8 px per cell
+    on the smallest sensor; ``changes`` on top."""
+    d = replace(
+        DRAWS[index],
+        profile="robust",
+        cells=16,
+        refresh_hz=60.0,
+        width=346,
+        height=260,
+        hfov_deg=50.0,
+        k1=-0.1,
+        p1=0.0,
+        p2=0.0,
+        blur_px=0.5,
+        vignetting=0.2,
+        marker_size_m=0.2,
+        roll_deg=10.0,
+        view_deg=15.0,
+        tilt_deg=15.0,
+        elevation_deg=0.0,
+        flow_px_per_ms=0.0,
+        rise_ms=2.5,
+        fall_ms=1.5,
+        scanout=0.96,
+        peak_nits=250.0,
+        contrast=1000.0,
+        pwm_hz=None,
+        lux=250.0,
+        threshold_on=0.22,
+        threshold_off=0.22,
+        threshold_sigma=0.03,
+        refractory_us=50.0,
+        leak_hz=0.1,
+        shot_hz=0.1,
+        latency_us=200.0,
+        jitter_us=50.0,
+        max_rate_mev_s=None,
+        lead_in_refreshes=6,
+        lead_in_content="black",
+        time_base_us=1_000_000_007,
+        start_refresh=100,
+        message_bytes=100,
+    )
+    d = replace(d, **changes)
+    f = d.camera().K[0, 0]
+    return replace(
+        d, distance_m=f * MarkerGeometry(d.cells).cell_size_m(d.marker_size_m) / d.cell_px
+    )
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"cell_px": 8.0},
+        {
+            "cell_px": 7.0,
+            "lead_in_content": "bars",
+            "lead_in_refreshes": 15,
+            "profile": "paper",
+            "start_refresh": 0,
+        },
+        {"cell_px": 6.0, "flow_px_per_ms": 0.3, "width": 640, "height": 480, "hfov_deg": 60.0},
+    ],
+    ids=["still", "still-bars-paper", "hand-held"],
+)
+def test_easy_scenes_lock_on_time_read_the_message_and_track_right(changes):
+    r = run_scene(_easy(4, **changes))
+    assert r["lock_ok"], (r["first_lock_ms"], r["detection_failures"])
+    assert not r["locked_before_marker"] and not r["first_lock_wrong"]
+    assert r["delivered"] and r["wrong_messages"] == 0
+    assert r["pose_poses"] > 100 and r["pose_wrong"] == 0
+    assert r["pose_off_share"] <= 0.005
+    assert r["ber"] < 0.01
+    assert r["on_per_transition"] is not None
+
+
+def test_a_resumed_run_takes_only_the_scenes_still_drawn_the_same(tmp_path):
+    same = {"draw": DRAWS[5].to_dict(), "first_lock_ms": 80.0}
+    changed = {"draw": replace(DRAWS[6], refresh_hz=61.0).to_dict(), "first_lock_ms": 90.0}
+    log = tmp_path / "run.log"
+    log.write_text(
+        f"[scenes] 1/2: scene 5\n{json.dumps(same)}\n[scenes] 2/2: scene 6\n{json.dumps(changed)}\n"
+    )
+    assert earlier_results(log, 7) == {5: same}
+    assert earlier_results(log, 8) == {}
