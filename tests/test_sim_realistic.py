@@ -176,3 +176,16 @@ def _on_times(ev: np.ndarray) -> dict[int, np.ndarray]:
 
 def _first_on(ev: np.ndarray) -> dict[int, float]:
     return {pix: float(t.min()) for pix, t in _on_times(ev).items()}
+
+
+def test_the_realistic_bench_fits_the_marker_and_can_lift_the_readout_limits():
+    from bench.realistic import FIT_SHARE, NO_READOUT, cells_for, sensor_for
+    from eventocc.occ.marker import MarkerGeometry
+
+    for px in (4, 7, 13, 30):
+        n = cells_for(px)
+        assert MarkerGeometry(n).tracked_side * px <= FIT_SHARE * 720
+        assert n == 128 or MarkerGeometry(n + 8).tracked_side * px > FIT_SHARE * 720
+    lifted = sensor_for("evk4" + NO_READOUT)
+    assert (lifted.readout_hz, lifted.erc_hz, lifted.link_hz) == (None, None, None)
+    assert lifted.photoreceptor_hz == SensorModel.preset("evk4").photoreceptor_hz

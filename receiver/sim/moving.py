@@ -683,7 +683,7 @@ class MovingRenderer:
         if scene.sensor.photoreceptor_hz > 0:
             raise ValueError(
                 "the photoreceptor low-pass is simulated for still cameras only; give the "
-                "sensor photoreceptor_hz=0 to simulate a moving camera"
+                "sensor photoreceptor_hz=0 to simulate a moving camera (preset evk4-moving)"
             )
         self._geo = plane_geometry(lay)
         self._rad = (rad.screen_ambient, rad.screen_black, rad.wall, rad.dark)

@@ -77,8 +77,8 @@ class Optics:
         """(S, 2) sample offsets in pixels and (S,) weights summing to 1: the light of a point
         spread over the pixel's square aperture, the Gaussian blur and the defocus disk,
         binned on a ``psf_step_px`` grid out to 4 sigma of the blur (samples that receive no
-        light are left out). The bins are filled by a fixed quasi-random draw, so the same
-        optics always give the same weights."""
+        light are left out; the light beyond the grid goes to its border). The bins are filled by
+        a pseudo-random draw of fixed seed, so the same optics always give the same weights."""
         if self.psf_step_px is None:
             offsets = self.offsets()
             return offsets, np.full(len(offsets), 1.0 / len(offsets))
