@@ -28,6 +28,8 @@ MEASURES: dict[str, tuple[str, ...]] = {
     "tracking": ("bench/tracking.py", *_PIPELINE),
     "live": ("bench/live.py", *_PIPELINE, "receiver/live", "server"),
     "first_run": ("bench/first_run.py", "Makefile", "pyproject.toml", "occ", "receiver", "server"),
+    "realistic": ("bench/realistic.py", *_PIPELINE),
+    "scenes": ("bench/scenes", *_PIPELINE),
     "paper_streaming": _EXPERIMENTS,
     "paper_localization": _EXPERIMENTS,
     "paper_comparison": _EXPERIMENTS,
