@@ -278,7 +278,7 @@ def failure_table(results: list[Result]) -> str:
     return "\n".join(lines)
 
 
-def summarise(results: list[Result], wall_s: float, jobs: int) -> str:
+def summarise(results: list[Result], wall_s: float, jobs: int, resumed: int = 0) -> str:
     """The suite's section of BENCHMARKS.md."""
     headline, covered = targets(results)
     moving = sum(r["draw"]["flow_px_per_ms"] > 0 for r in results)
@@ -288,6 +288,12 @@ def summarise(results: list[Result], wall_s: float, jobs: int) -> str:
     wrong_first = sum(r["first_lock_wrong"] for r in results)
     wrong_msgs = sum(r["wrong_messages"] for r in results)
     missed = Counter(m for r in results for m in failed(r))
+    ran = f"wall time {wall_s / 60:.0f} min with {jobs} jobs"
+    if resumed:
+        ran = (
+            f"this run ran {len(results) - resumed} of them in {wall_s / 60:.0f} min with {jobs} "
+            f"jobs and took {resumed} from an earlier run's output"
+        )
     on = [r["on_per_transition"] for r in results if r["on_per_transition"] is not None]
     ranges = "; ".join(
         f"{k} {lo:g}-{hi:g}" for k, (lo, hi) in RANGES.items() if k not in ("time_base_us",)
@@ -297,8 +303,8 @@ def summarise(results: list[Result], wall_s: float, jobs: int) -> str:
 {len(results)} scenes ({moving} hand-held, {len(results) - moving} still), {len(covered)} of
 them in the targets' range. Over all scenes: no lock within {LOCK_MS:g} ms in {missed["lock"]},
 more than {OFF_SCENE:.1%} of the poses off in {missed["poses"]}, no message in
-{missed["message"]}; wall time {wall_s / 60:.0f} min with {jobs} jobs (simulator
-{sim / 60:.0f} CPU min, receiver {rx / 60:.0f}). Locked before the marker appeared (on the
+{missed["message"]}. Simulator {sim / 60:.0f} CPU min, receiver {rx / 60:.0f} (on {jobs} idle cores
+{(sim + rx) / 60 / jobs:.0f} min); {ran}. Locked before the marker appeared (on the
 lead-in): {before} scenes; first lock more than {100 * WRONG_M:g} cm off within its first
 50 ms: {wrong_first}; messages delivered wrong: {wrong_msgs}. ON events per pixel per
 transition (median per scene, pixels of a sparse grid that saw at least three): median
