@@ -32,7 +32,7 @@ from bench.scenes.run import (
     run_scene,
     score_poses,
 )
-from bench.scenes.summary import failed, parameter_table, summarise, targets
+from bench.scenes.summary import PARAMS, _bins, failed, parameter_table, summarise, targets
 from eventocc.occ.marker import MarkerGeometry
 from eventocc.receiver.poses import make_pose
 from eventocc.receiver.sim.motion import project_points
@@ -305,3 +305,13 @@ def test_a_resumed_run_takes_only_the_scenes_still_drawn_the_same(tmp_path):
     )
     assert earlier_results(log, 7) == {5: same}
     assert earlier_results(log, 8) == {}
+
+
+def test_every_scene_falls_in_one_range_of_each_parameter():
+    results = [_result(c, 0.0, 80.0, True, 0.0) for c in (4.0, 4.0, 4.0, 5.0, 6.0, 9.0, 12.0, 30.0)]
+    for r, n in zip(results, (16, 16, 16, 16, 24, 32, 64, 128), strict=True):
+        r["draw"]["cells"] = n
+    for name, get in PARAMS:
+        bins = _bins([get(r) for r in results])
+        counts = [sum(member(get(r)) for r in results) for _, member in bins]
+        assert sum(counts) == len(results), name

@@ -3,6 +3,7 @@ the detection failures behind the scenes that did not lock in time."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import Counter, defaultdict
 from collections.abc import Callable
@@ -188,26 +189,24 @@ def grid_table(results: list[Result]) -> str:
 
 
 def _bins(values: list) -> list[tuple[str, Callable[[object], bool]]]:
-    """Three ranges of equal counts for numbers, one bin per value otherwise."""
+    """One bin per value for categories and numbers of a few values; otherwise up to three
+    ranges of about equal counts, each from its low end up to the next's (the last closed)."""
     if all(isinstance(v, bool | str) for v in values):
         return [(str(v), lambda x, v=v: x == v) for v in sorted(set(values), key=str)]
     finite = sorted(v for v in values if v is not None and not math.isnan(v))
-    if not finite:
-        return []
-    cuts = [finite[0], *np.percentile(finite, [100 / 3, 200 / 3]), finite[-1]]
-    if len(set(finite)) <= 4:
+    if len(set(finite)) <= 7:
         return [(f"{v:g}", lambda x, v=v: x == v) for v in sorted(set(finite))]
+    cuts = sorted(set(np.percentile(finite, [0, 100 / 3, 200 / 3, 100])))
     out = []
-    for k in range(3):
-        lo, hi = cuts[k], cuts[k + 1]
-        last = k == 2
+    for k, (lo, hi) in enumerate(itertools.pairwise(cuts)):
+        last = k == len(cuts) - 2
         out.append(
             (
                 f"{_short(lo)}-{_short(hi)}",
-                lambda x, lo=lo, hi=hi, first=k == 0, last=last: (
+                lambda x, lo=lo, hi=hi, last=last: (
                     x is not None
                     and not math.isnan(x)
-                    and (lo < x or (first and x == lo))
+                    and lo <= x
                     and (x <= hi if last else x < hi)
                 ),
             )
