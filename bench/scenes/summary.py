@@ -56,7 +56,7 @@ PARAMS: tuple[Param, ...] = (
     ("shot noise Hz", _d("shot_hz")),
     ("leak Hz", _d("leak_hz")),
     ("latency us", _d("latency_us")),
-    ("readout cap Mev/s (none: 0)", lambda r: r["draw"]["max_rate_mev_s"] or 0.0),
+    ("readout cap Mev/s", _d("max_rate_mev_s")),
     ("lead-in s", lambda r: r["draw"]["lead_in_refreshes"] / r["draw"]["refresh_hz"]),
     ("lead-in content", _d("lead_in_content")),
     ("time base", lambda r: "0" if r["draw"]["time_base_us"] == 0 else "> 0"),
@@ -194,10 +194,12 @@ def _bins(values: list) -> list[tuple[str, Callable[[object], bool]]]:
     if all(isinstance(v, bool | str) for v in values):
         return [(str(v), lambda x, v=v: x == v) for v in sorted(set(values), key=str)]
     finite = sorted(v for v in values if v is not None and not math.isnan(v))
+    out: list[tuple[str, Callable[[object], bool]]] = []
+    if len(finite) < len(values):  # no value: no readout cap, no burst seen
+        out.append(("none", lambda x: x is None or math.isnan(x)))
     if len(set(finite)) <= 7:
-        return [(f"{v:g}", lambda x, v=v: x == v) for v in sorted(set(finite))]
+        return out + [(f"{v:g}", lambda x, v=v: x == v) for v in sorted(set(finite))]
     cuts = sorted(set(np.percentile(finite, [0, 100 / 3, 200 / 3, 100])))
-    out = []
     for k, (lo, hi) in enumerate(itertools.pairwise(cuts)):
         last = k == len(cuts) - 2
         out.append(
