@@ -109,8 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     resumed = sum(i in done for i in indices)
     run = {
         "command": f"python -m bench.scenes --scenes {args.scenes} --seed {args.seed} "
-        f"--jobs {args.jobs}"
-        + (f" (resumed: {resumed} scenes from an earlier run)" if resumed else ""),
+        f"--jobs {args.jobs}",
         "wall_s": time.perf_counter() - t0,
         "jobs": args.jobs,
         "resumed": resumed,
