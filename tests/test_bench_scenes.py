@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -21,6 +22,7 @@ from bench.scenes.draw import (
     SENSORS,
     SceneDraw,
     draw,
+    folds,
 )
 from bench.scenes.run import (
     earlier_results,
@@ -30,7 +32,7 @@ from bench.scenes.run import (
     run_scene,
     score_poses,
 )
-from bench.scenes.summary import failed, parameter_table, summarise, targets
+from bench.scenes.summary import PARAMS, _bins, failed, parameter_table, summarise, targets
 from eventocc.occ.marker import MarkerGeometry
 from eventocc.receiver.poses import make_pose
 from eventocc.receiver.sim.motion import project_points
@@ -198,6 +200,23 @@ def test_the_targets_count_the_scenes_in_their_range_only():
     assert failed(results[2]) == ["poses", "message"]
     assert "pixels per cell" in parameter_table(results)
     assert "**In short:**" in summarise(results, wall_s=60.0, jobs=2)
+    assert "this run ran 3 of them in 1 min with 2 jobs and took 2 from" in summarise(
+        results, wall_s=60.0, jobs=2, resumed=2
+    )
+
+
+def test_a_lens_that_folds_within_the_sensor_is_not_drawn():
+    # 640x480, 70 deg wide, k1 = -0.3: the corners lie beyond the distortion's peak.
+    assert folds(640, 480, 70.0, -0.3) and not folds(640, 480, 40.0, -0.3)
+    assert not folds(640, 480, 70.0, 0.1)
+    strongest = sorted(DRAWS, key=lambda d: d.k1 * math.tan(math.radians(d.hfov_deg / 2)) ** 2)
+    for d in strongest[:3]:  # the most distorting drawn lenses invert (OpenCV's iteration: ~0.1 px)
+        cam = d.camera()
+        ideal = cam.undistort_table.astype(np.float64)
+        rays = np.dstack([(ideal - cam.K[:2, 2]) / cam.K[[0, 1], [0, 1]], np.ones(ideal.shape[:2])])
+        ys, xs = np.mgrid[0 : cam.height, 0 : cam.width]
+        back = cam.project(rays)
+        assert np.hypot(back[..., 0] - xs, back[..., 1] - ys).max() < 0.25
 
 
 def _easy(index: int, **changes) -> SceneDraw:
@@ -243,6 +262,7 @@ def _easy(index: int, **changes) -> SceneDraw:
         time_base_us=1_000_000_007,
         start_refresh=100,
         message_bytes=100,
+        sim_seed=11,  # the sensor's and the wander's draws, apart from the suite's
     )
     d = replace(d, **changes)
     f = d.camera().K[0, 0]
@@ -288,3 +308,14 @@ def test_a_resumed_run_takes_only_the_scenes_still_drawn_the_same(tmp_path):
     )
     assert earlier_results(log, 7) == {5: same}
     assert earlier_results(log, 8) == {}
+
+
+def test_every_scene_falls_in_one_range_of_each_parameter():
+    results = [_result(c, 0.0, 80.0, True, 0.0) for c in (4.0, 4.0, 4.0, 5.0, 6.0, 9.0, 12.0, 30.0)]
+    for r, n in zip(results, (16, 16, 16, 16, 24, 32, 64, 128), strict=True):
+        r["draw"]["cells"] = n
+        r["draw"]["max_rate_mev_s"] = None if n < 32 else n / 2  # none: a range of its own
+    for name, get in PARAMS:
+        bins = _bins([get(r) for r in results])
+        counts = [sum(member(get(r)) for r in results) for _, member in bins]
+        assert sum(counts) == len(results), name

@@ -68,7 +68,7 @@ def _progress(n: int, total: int, r: dict) -> None:
 
 def write_report(run: dict, out: Path) -> str:
     """The suite's section of ``out/BENCHMARKS.md`` from a run (``results/scenes.json``)."""
-    body = summarise(run["scenes"], wall_s=run["wall_s"], jobs=run["jobs"])
+    body = summarise(run["scenes"], run["wall_s"], run["jobs"], run.get("resumed", 0))
     write_section("scenes", "Randomized scene suite", run["command"], body, out / "BENCHMARKS.md")
     return body
 
@@ -109,10 +109,10 @@ def main(argv: list[str] | None = None) -> None:
     resumed = sum(i in done for i in indices)
     run = {
         "command": f"python -m bench.scenes --scenes {args.scenes} --seed {args.seed} "
-        f"--jobs {args.jobs}"
-        + (f" (resumed: {resumed} scenes from an earlier run)" if resumed else ""),
+        f"--jobs {args.jobs}",
         "wall_s": time.perf_counter() - t0,
         "jobs": args.jobs,
+        "resumed": resumed,
         "scenes": results,
     }
     saved.parent.mkdir(parents=True, exist_ok=True)

@@ -235,6 +235,24 @@ def _camera(width: int, height: int, hfov_deg: float, k1: float, p1: float, p2: 
     return CameraModel(width, height, K, np.array([k1, 0.0, p1, p2, 0.0]))
 
 
+FOLD_MARGIN = 0.8
+"""A drawn lens keeps the sensor's corners within this share of the largest radius its radial
+distortion reaches (``folds``)."""
+
+
+def folds(width: int, height: int, hfov_deg: float, k1: float) -> bool:
+    """Whether a barrel distortion ``k1`` folds over within the sensor: ``r (1 + k1 r^2)`` peaks
+    at ``r^2 = -1 / (3 k1)``, and pixels beyond that peak's image see no ray (their inverse is
+    garbage: 700 px off at the corners of a 640x480 sensor, 70 deg wide, k1 = -0.3). A real lens
+    of such a field has a k2 to keep it monotonic; the suite draws k1 alone and keeps the corners
+    within ``FOLD_MARGIN`` of the peak."""
+    if k1 >= 0:
+        return False
+    corner = math.tan(math.radians(hfov_deg) / 2) * math.hypot(1.0, height / width)
+    peak = 2 / 3 * math.sqrt(-1 / (3 * k1))
+    return corner > FOLD_MARGIN * peak
+
+
 class _Draws:
     def __init__(self, rng: np.random.Generator) -> None:
         self.rng = rng
@@ -357,7 +375,7 @@ def _geometry(u: _Draws):
     for width, height in SENSORS:
         fits, distance = room(cells, cell_px, width, height)
         if fits >= 1.0:
-            if not 0.15 <= distance <= 5.0:
+            if not 0.15 <= distance <= 5.0 or folds(width, height, hfov, k1):
                 return None
             fields = {
                 "hfov_deg": hfov,

@@ -3,6 +3,7 @@ the detection failures behind the scenes that did not lock in time."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import Counter, defaultdict
 from collections.abc import Callable
@@ -55,7 +56,7 @@ PARAMS: tuple[Param, ...] = (
     ("shot noise Hz", _d("shot_hz")),
     ("leak Hz", _d("leak_hz")),
     ("latency us", _d("latency_us")),
-    ("readout cap Mev/s (none: 0)", lambda r: r["draw"]["max_rate_mev_s"] or 0.0),
+    ("readout cap Mev/s", _d("max_rate_mev_s")),
     ("lead-in s", lambda r: r["draw"]["lead_in_refreshes"] / r["draw"]["refresh_hz"]),
     ("lead-in content", _d("lead_in_content")),
     ("time base", lambda r: "0" if r["draw"]["time_base_us"] == 0 else "> 0"),
@@ -188,26 +189,26 @@ def grid_table(results: list[Result]) -> str:
 
 
 def _bins(values: list) -> list[tuple[str, Callable[[object], bool]]]:
-    """Three ranges of equal counts for numbers, one bin per value otherwise."""
+    """One bin per value for categories and numbers of a few values; otherwise up to three
+    ranges of about equal counts, each from its low end up to the next's (the last closed)."""
     if all(isinstance(v, bool | str) for v in values):
         return [(str(v), lambda x, v=v: x == v) for v in sorted(set(values), key=str)]
     finite = sorted(v for v in values if v is not None and not math.isnan(v))
-    if not finite:
-        return []
-    cuts = [finite[0], *np.percentile(finite, [100 / 3, 200 / 3]), finite[-1]]
-    if len(set(finite)) <= 4:
-        return [(f"{v:g}", lambda x, v=v: x == v) for v in sorted(set(finite))]
-    out = []
-    for k in range(3):
-        lo, hi = cuts[k], cuts[k + 1]
-        last = k == 2
+    out: list[tuple[str, Callable[[object], bool]]] = []
+    if len(finite) < len(values):  # no value: no readout cap, no burst seen
+        out.append(("none", lambda x: x is None or math.isnan(x)))
+    if len(set(finite)) <= 7:
+        return out + [(f"{v:g}", lambda x, v=v: x == v) for v in sorted(set(finite))]
+    cuts = sorted(set(np.percentile(finite, [0, 100 / 3, 200 / 3, 100])))
+    for k, (lo, hi) in enumerate(itertools.pairwise(cuts)):
+        last = k == len(cuts) - 2
         out.append(
             (
                 f"{_short(lo)}-{_short(hi)}",
-                lambda x, lo=lo, hi=hi, first=k == 0, last=last: (
+                lambda x, lo=lo, hi=hi, last=last: (
                     x is not None
                     and not math.isnan(x)
-                    and (lo < x or (first and x == lo))
+                    and lo <= x
                     and (x <= hi if last else x < hi)
                 ),
             )
@@ -278,7 +279,7 @@ def failure_table(results: list[Result]) -> str:
     return "\n".join(lines)
 
 
-def summarise(results: list[Result], wall_s: float, jobs: int) -> str:
+def summarise(results: list[Result], wall_s: float, jobs: int, resumed: int = 0) -> str:
     """The suite's section of BENCHMARKS.md."""
     headline, covered = targets(results)
     moving = sum(r["draw"]["flow_px_per_ms"] > 0 for r in results)
@@ -288,6 +289,12 @@ def summarise(results: list[Result], wall_s: float, jobs: int) -> str:
     wrong_first = sum(r["first_lock_wrong"] for r in results)
     wrong_msgs = sum(r["wrong_messages"] for r in results)
     missed = Counter(m for r in results for m in failed(r))
+    ran = f"wall time {wall_s / 60:.0f} min with {jobs} jobs"
+    if resumed:
+        ran = (
+            f"this run ran {len(results) - resumed} of them in {wall_s / 60:.0f} min with {jobs} "
+            f"jobs and took {resumed} from an earlier run's output"
+        )
     on = [r["on_per_transition"] for r in results if r["on_per_transition"] is not None]
     ranges = "; ".join(
         f"{k} {lo:g}-{hi:g}" for k, (lo, hi) in RANGES.items() if k not in ("time_base_us",)
@@ -297,8 +304,8 @@ def summarise(results: list[Result], wall_s: float, jobs: int) -> str:
 {len(results)} scenes ({moving} hand-held, {len(results) - moving} still), {len(covered)} of
 them in the targets' range. Over all scenes: no lock within {LOCK_MS:g} ms in {missed["lock"]},
 more than {OFF_SCENE:.1%} of the poses off in {missed["poses"]}, no message in
-{missed["message"]}; wall time {wall_s / 60:.0f} min with {jobs} jobs (simulator
-{sim / 60:.0f} CPU min, receiver {rx / 60:.0f}). Locked before the marker appeared (on the
+{missed["message"]}. Simulator {sim / 60:.0f} CPU min, receiver {rx / 60:.0f} (on {jobs} idle cores
+{(sim + rx) / 60 / jobs:.0f} min); {ran}. Locked before the marker appeared (on the
 lead-in): {before} scenes; first lock more than {100 * WRONG_M:g} cm off within its first
 50 ms: {wrong_first}; messages delivered wrong: {wrong_msgs}. ON events per pixel per
 transition (median per scene, pixels of a sparse grid that saw at least three): median
