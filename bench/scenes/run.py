@@ -26,9 +26,9 @@ from eventocc.receiver.sim import simulate
 from eventocc.receiver.sim.truth import SceneTruth
 
 OFF_M, OFF_DEG = 0.02, 2.0
-"""A published pose this far from the truth (either) counts as off."""
+"""A pose this far from the truth (either) counts as off."""
 WRONG_M = 0.05
-"""A published pose this far from the truth counts as wrong."""
+"""A pose this far from the truth counts as wrong."""
 LOCK_MS = 150.0
 """The lock the issue asks for: within this long of the marker appearing."""
 FIRST_LOCK_MS = 50.0
@@ -52,7 +52,7 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray, np.n
 class PoseScore:
     poses: int
     off_share: float | None
-    """Share of the published poses more than ``OFF_M`` or ``OFF_DEG`` off (None: no pose)."""
+    """Share of the poses more than ``OFF_M`` or ``OFF_DEG`` off (None: no pose)."""
     wrong_share: float | None
     """Share more than ``WRONG_M`` off."""
     wrong: int
@@ -147,7 +147,9 @@ def run_scene(draw: SceneDraw) -> dict:
     st = receiver.stats
     t = np.array(log.pose_t, np.int64)
     est = np.array(log.poses).reshape(-1, 4, 4)
+    verified = np.array(log.pose_verified, bool)
     position, rotation = pose_errors(est, rec.pose_at(t)) if len(t) else (np.empty(0),) * 2
+    tentative = score_poses(position[~verified], rotation[~verified])
     locks_ms = [(u - appears) / 1e3 for u in st.lock_times_us]
     first = locks_ms[0] if locks_ms else None
     early = np.zeros(len(t), bool)
@@ -171,7 +173,14 @@ def run_scene(draw: SceneDraw) -> dict:
         "first_lock_wrong": bool(early.any() and position[early].max() > WRONG_M),
         "locks": len(locks_ms),
         "losses": st.losses,
-        **{f"pose_{k}": v for k, v in asdict(score_poses(position, rotation)).items()},
+        **{
+            f"pose_{k}": v
+            for k, v in asdict(score_poses(position[verified], rotation[verified])).items()
+        },
+        "tentative_poses": tentative.poses,
+        "tentative_off_share": tentative.off_share,
+        "tentative_wrong": tentative.wrong,
+        "verified_ms": (t[verified][0] - appears) / 1e3 if verified.any() else None,
         "delivered": delivered_us is not None,
         "delivered_ms": None if delivered_us is None else (delivered_us - appears) / 1e3,
         "wrong_messages": wrong_messages,

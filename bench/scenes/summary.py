@@ -157,12 +157,12 @@ def targets(results: list[Result]) -> tuple[str, list[Result]]:
         f"At >= {TARGET_CELL_PX:g} px per cell and flow <= {TARGET_FLOW:g} px/ms "
         f"({len(covered)} scenes): locked within {LOCK_MS:g} ms of the marker appearing in "
         f"{_pct(lock)} (target {LOCK_SHARE:.0%}: {verdict(lock, LOCK_SHARE)}); "
-        f"{_pct_fine(within)} of {poses:,} published poses within {100 * OFF_M:g} cm / "
+        f"{_pct_fine(within)} of {poses:,} verified poses within {100 * OFF_M:g} cm / "
         f"{OFF_DEG:g} deg (target {POSE_SHARE:.1%}: {verdict(within, POSE_SHARE)}); message "
         f"delivered in {_pct(delivered)} (target {DELIVERED_SHARE:.0%}: "
         f"{verdict(delivered, DELIVERED_SHARE)}). Up to 2 px/ms: {len(wrong)} of "
-        f"{len(results)} scenes published poses more than {100 * WRONG_M:g} cm off (target: "
-        f"none; worst {worst:.0f} cm)."
+        f"{len(results)} scenes published verified poses more than {100 * WRONG_M:g} cm off "
+        f"(target: none; worst {worst:.0f} cm)."
     )
     return text, covered
 
@@ -289,6 +289,13 @@ def summarise(results: list[Result], wall_s: float, jobs: int, resumed: int = 0)
     wrong_first = sum(r["first_lock_wrong"] for r in results)
     wrong_msgs = sum(r["wrong_messages"] for r in results)
     missed = Counter(m for r in results for m in failed(r))
+    tentative = sum(r.get("tentative_poses", 0) for r in results)
+    tentative_off = sum(
+        round(r["tentative_off_share"] * r["tentative_poses"])
+        for r in results
+        if r.get("tentative_poses")
+    )
+    tentative_wrong = sum(r.get("tentative_wrong", 0) > 0 for r in results)
     ran = f"wall time {wall_s / 60:.0f} min with {jobs} jobs"
     if resumed:
         ran = (
@@ -307,7 +314,10 @@ more than {OFF_SCENE:.1%} of the poses off in {missed["poses"]}, no message in
 {missed["message"]}. Simulator {sim / 60:.0f} CPU min, receiver {rx / 60:.0f} (on {jobs} idle cores
 {(sim + rx) / 60 / jobs:.0f} min); {ran}. Locked before the marker appeared (on the
 lead-in): {before} scenes; first lock more than {100 * WRONG_M:g} cm off within its first
-50 ms: {wrong_first}; messages delivered wrong: {wrong_msgs}. ON events per pixel per
+50 ms: {wrong_first}; messages delivered wrong: {wrong_msgs}. Tentative poses (published
+before a frame of their lock passed its check, and marked so): {tentative:,}, of them
+{tentative_off:,} off; scenes with a tentative pose more than {100 * WRONG_M:g} cm off:
+{tentative_wrong}. ON events per pixel per
 transition (median per scene, pixels of a sparse grid that saw at least three): median
 {_q(on, 50):.1f}, 10-90% {_q(on, 10):.1f}-{_q(on, 90):.1f}.
 
@@ -321,7 +331,8 @@ up hand-held; the sensor is the smallest of {", ".join(f"{w}x{h}" for w, h in SE
 the marker fits. Each clip runs to {AFTER_S:g} s after the marker appears. Pixels per cell:
 at the marker centre as if seen square-on (a 45 degree view shortens one axis by 30%). The
 receiver is told what a user tells it (profile, N, refresh rate, the calibration, the marker
-size; the message size for `paper`) and runs with its defaults. A pose counts as off when its
+size; the message size for `paper`) and runs with its defaults. Poses are scored as the
+daemon's trajectory holds them: verified ones only. A pose counts as off when its
 position is more than {100 * OFF_M:g} cm or its rotation more than {OFF_DEG:g} deg from the
 truth at its timestamp (a sensor's latency counts against it); lock time counts from the start
 of the marker's first refresh. Worst decile: the 90th percentile (10th for the real-time
