@@ -351,6 +351,25 @@ def test_a_lock_whose_frames_never_pass_their_check_is_dropped_within_100_ms():
     assert not any(log.pose_verified), "no pose of an unproven lock is published as verified"
 
 
+def test_a_proven_lock_whose_frames_stop_passing_goes_tentative_and_is_dropped():
+    # The screen switches from robust to fast under a still camera: the ring and the 'L' stay
+    # where they were, so the track holds and keeps seeing the locator, but no frame passes.
+    switch_us = 400_000
+    config = ReceiverConfig(CAMERA, cells=16, profile="robust", refresh_hz=60.0)
+    robust, fast = (
+        simulate(_scene(profile, STATIC, "gen4-indoor"), duration_s=0.8, chunk_us=10_000)
+        for profile in ("robust", "fast")
+    )
+    chunks = [c[c["t"] < switch_us] for c in robust] + [c[c["t"] >= switch_us] for c in fast]
+    log = decode_events(Receiver(config), [c for c in chunks if len(c)], None)
+    t, verified = np.array(log.pose_t), np.array(log.pose_verified)
+    assert verified[t < switch_us].sum() > 100, "the robust frames proved the lock"
+    lapse = config.decoder.proof_lapse_us + config.frame_us
+    assert not verified[t > switch_us + lapse].any()
+    drops = [s.t_us for s in log.states if s.reason == "no frame passed its check lately"]
+    assert drops and switch_us < drops[0] <= switch_us + lapse + config.frame_us
+
+
 @pytest.mark.parametrize(("cells", "locks"), [(16, True), (64, False)])
 def test_the_receiver_says_how_many_pixels_a_cell_spans_locked_or_not(cells, locks):
     """The demo's 320x180 camera 0.6 m from the marker: 16 cells read at ~5 px per cell; 64

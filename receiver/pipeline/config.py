@@ -227,6 +227,12 @@ class DecoderParams:
     frames of this much event time (at least two), or it is dropped and detection resumes: a
     still camera reads a right lock's frames cleanly from the first, so frames that keep
     failing their CRC mean a wrong lock. None: no probation."""
+    proof_lapse_us: int | None = 100_000
+    """A proven lock stays proven for this much event time (at least two frames) after its
+    latest frame that passed its check: its poses after that come out tentative, and it is
+    dropped at its next frame that fails, so detection resumes. A tracker that slides off the
+    marker keeps reading the locator (its ring is wide) long after its frames stopped
+    passing. None: once proven, for good."""
 
     def __post_init__(self) -> None:
         if self.read_px_per_cell is not None and self.read_px_per_cell <= 0:
@@ -239,6 +245,10 @@ class DecoderParams:
             raise ValueError(
                 "decoder still_probation_us must be positive or None, "
                 f"got {self.still_probation_us}"
+            )
+        if self.proof_lapse_us is not None and self.proof_lapse_us <= 0:
+            raise ValueError(
+                f"decoder proof_lapse_us must be positive or None, got {self.proof_lapse_us}"
             )
         if self.probation_frames is not None and self.probation_frames < 1:
             raise ValueError(

@@ -16,8 +16,9 @@ the inner locator goes unseen for several frames, or its 'L' reads upright barel
 turned (``Track.misturned``): a pose a quarter turn off passes every other check. Some wrong
 poses read the 'L' well all the same, so a lock stays unproven until one of its frames passes
 its check (CRC; ``paper``: its 'L' read clearly), and is on probation meanwhile (a few frames
-for a still camera, more under motion: ``Track.failed_probation``). Poses of an unproven lock
-come out tentative (``PoseEstimate.verified`` false).
+for a still camera, more under motion: ``Track.failed_probation``). A proof lapses when no
+frame has passed for a while (``DecoderParams.proof_lapse_us``), and the lock goes with it.
+Poses outside a proof come out tentative (``PoseEstimate.verified`` false).
 
 Only one stage touches every event while the marker is tracked: the compiled triage
 (``triage.EventTriage``), which keeps each pixel's latest burst times for the decoder and hands
@@ -68,8 +69,8 @@ class PoseEstimate:
     t_us: int
     T_world_cam: np.ndarray
     verified: bool = False
-    """A frame had proven the lock when the pose came out (``Track.proven``); before that
-    the pose is tentative: a wrong lock can look right to every other check."""
+    """A frame proved the lock around the pose (``Track.verified_at``); otherwise the pose
+    is tentative: a wrong lock can look right to every other check."""
 
 
 @dataclass(frozen=True)
@@ -132,18 +133,30 @@ class Track:
     None: no limit."""
     turn_leads: deque[float]
     """The latest read frames' leads of the locator's canonical turn (``misturned``)."""
+    lapse_us: float | None
+    """How long a proof holds (``DecoderParams.proof_lapse_us``); None: for good."""
     missed: int = 0
     """Frames in a row without the inner locator."""
-    proven: bool = False
-    """Whether a frame has proven the lock: one passed its check (CRC, framed profiles) or, for
-    ``paper`` (no check of its own), read the locator's 'L' upright and clear."""
+    proven_at_us: int | None = None
+    """Time of the latest frame that proved the lock: it passed its check (CRC, framed
+    profiles) or, for ``paper`` (no check of its own), read the locator's 'L' upright and
+    clear. None: unproven so far."""
+
+    def verified_at(self, t_us: int) -> bool:
+        """Whether a pose at ``t_us`` comes out verified: a proof before it holds then, or one
+        came after it (the lock's buffered frames prove the poses before them)."""
+        if self.proven_at_us is None:
+            return False
+        return self.lapse_us is None or t_us - self.proven_at_us <= self.lapse_us
 
     def failed_probation(self, frame: FrameOutput) -> bool:
-        """Whether the lock has now read its last frame on probation unproven; once proven it
-        is off probation for good."""
+        """Whether the lock must go after ``frame`` (locator seen, check failed or passed): an
+        unproven one has read its last frame on probation, a proven one's proof has lapsed."""
+        if self.proven_at_us is not None:
+            return not self.verified_at(frame.read.t_us)
         if self.probation is None:
             return False
-        self.probation = None if self.proven else self.probation - 1
+        self.probation -= 1
         return self.probation == 0
 
     def misturned(self, read: FrameRead, min_turn_lead: float) -> bool:
@@ -324,6 +337,9 @@ class Receiver:
             late_mark=late is not None and side >= late,
             probation=self._probation_frames(found.moving) if framed else None,
             turn_leads=deque(maxlen=q.turn_frames),
+            lapse_us=None
+            if q.proof_lapse_us is None
+            else max(q.proof_lapse_us, 2 * self.config.frame_us),
         )
         self._triage.reset(now, stride)
         self._poses.restart(t_lock, T)
@@ -529,11 +545,16 @@ class Receiver:
             if frame.payload_bits:
                 self._verified = (read.t_us, pose)
             if frame.payload_bits or (not framed and track.turn_leads[-1] >= q.min_turn_lead):
-                track.proven = True
+                track.proven_at_us = read.t_us
             out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]
             if track.failed_probation(frame):
-                out += self._lose(now, "no frame passed its check since the lock")
+                reason = (
+                    "no frame passed its check since the lock"
+                    if track.proven_at_us is None
+                    else "no frame passed its check lately"
+                )
+                out += self._lose(now, reason)
         return out
 
     # --- poses -------------------------------------------------------------------------------
@@ -551,13 +572,15 @@ class Receiver:
     def _pose_output(self, t_us: int, T_cam_world: np.ndarray) -> list[PoseEstimate]:
         """Hand a tracked pose to the smoother; the smoothed poses it gives back."""
         self._last_pose_out = t_us
-        smoothed = self._smoother.push(t_us, invert(T_cam_world))
-        return [PoseEstimate(*p, verified=self._proven) for p in smoothed]
+        return self._estimates(self._smoother.push(t_us, invert(T_cam_world)))
 
     def _flush_poses(self) -> list[PoseEstimate]:
         """The smoothed poses still held: the track is ending."""
-        return [PoseEstimate(*p, verified=self._proven) for p in self._smoother.flush()]
+        return self._estimates(self._smoother.flush())
 
-    @property
-    def _proven(self) -> bool:
-        return self._track is not None and self._track.proven
+    def _estimates(self, smoothed: list[tuple[int, np.ndarray]]) -> list[PoseEstimate]:
+        track = self._track
+        return [
+            PoseEstimate(t, T, verified=track is not None and track.verified_at(t))
+            for t, T in smoothed
+        ]
