@@ -71,6 +71,9 @@ class DetectorParams:
     """The same for the still path's phase-locked image: a still marker shows sharp there and its
     'L' leads by more than 1, while a camera drifting too slowly for the burst to give a flow
     smears it into quadrilaterals centimetres off whose 'L' leads by about 0.3."""
+    min_binned_cell_px: float = 4.0
+    """The still path retries on binned pixels (``detector.bin_factor``) only while a cell keeps
+    this many binned pixels across: fewer blur the inner locator's 'L' away."""
     max_square_flow_px_per_ms: float = 0.3
     min_square_orientation_score: float = 0.5
     """Up to this flow the square fitted to the burst's locator gives the pose itself if it

@@ -397,13 +397,17 @@ def burst_image(
     mask: np.ndarray,
     periods: int = 2,
 ) -> np.ndarray:
-    """Boolean image of the pixels of ``mask`` that brighten in step with the bursts of the last
-    ``periods`` blinks.
+    """How strongly each pixel of ``mask`` brightens in step with the bursts of the last
+    ``periods`` blinks: 0 where it does not, else its in-phase ON events over those of the
+    brightest tenth of such pixels, at most 1.
 
     A pixel counts when its ON events keep one phase (harmonic ratio >= 0.5) close to the burst's:
     within 0.3 period, because the display's scan-out spreads the rows' bursts over about 0.45
     period and the pixel response delays them further, while cells blinking in antiphase sit
-    half a period away. Edges swept by camera motion fire at any phase."""
+    half a period away. Edges swept by camera motion fire at any phase. The strength tells a
+    lit cell from a dark one that blur lights a little: the sensor answers the log of the light,
+    so a dark cell that gets a few per cent of its neighbour's fires in phase as well, with
+    fewer events."""
     since = int(parts[-1]["t"][-1] - periods * period_us)
     x, y, w, h = cv2.boundingRect(mask)
     acc = np.zeros((h, w, 3))
@@ -415,8 +419,12 @@ def burst_image(
     amplitude = np.hypot(re, im)
     lag = np.angle((re + 1j * im) * np.exp(2j * np.pi * burst_us / period_us))
     inside = (count >= 2) & (amplitude >= 0.5 * count) & (np.abs(lag) <= 0.3 * 2 * np.pi)
-    image = np.zeros(mask.shape, bool)
-    image[y : y + h, x : x + w] = inside & (mask[y : y + h, x : x + w] > 0)
+    inside &= mask[y : y + h, x : x + w] > 0
+    strength = np.where(inside, amplitude * np.cos(lag), 0.0)
+    image = np.zeros(mask.shape, np.float32)
+    if inside.any():
+        top = np.percentile(strength[inside], 90)
+        image[y : y + h, x : x + w] = np.clip(strength / top, 0.0, 1.0) * inside
     return image
 
 
@@ -453,6 +461,9 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
             lambda: _detect_moving(parts, before, None, region, config),
             lambda: _detect_slow(parts, before, region, config),
         ]
+    cell_px = region_cell_px(region, config)
+    if (b := bin_factor(cell_px, config)) > 1:
+        paths.append(lambda: _detect_binned(parts, config, b))
     misses = []
     for path in paths:
         try:
@@ -462,8 +473,36 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
             continue
         if found is not None:
             return found
-    misses[0].cell_px = region_cell_px(region, config)
+    misses[0].cell_px = cell_px
     raise misses[0]  # the preferred path's reason
+
+
+def bin_factor(cell_px: float, config: ReceiverConfig) -> int:
+    """Pixels binned per side (1, 2 or 4) for the still path's last resort on sparse events:
+    as many as leave ``DetectorParams.min_binned_cell_px`` per cell and divide the sensor."""
+    cam, least = config.camera, config.detector.min_binned_cell_px
+    b = 1
+    while b < 4 and cell_px / (2 * b) >= least and cam.width % (2 * b) == 0 == cam.height % (2 * b):
+        b *= 2
+    return b
+
+
+def _detect_binned(parts: list[np.ndarray], config: ReceiverConfig, b: int) -> Detection:
+    """The still path on a sensor of ``b`` x ``b`` binned pixels, its corners taken back to the
+    full one. A readout that caps the event rate (a rate controller, a slow link) leaves a
+    large marker's pixels a fraction of an event per blink, too few for a pixel's own triplets
+    and phase, while a binned pixel collects a cell's worth."""
+    cam = config.camera
+    coarse = replace(config, camera=cam.binned(cam.width // b, cam.height // b))
+    binned = []
+    for p in parts:
+        q = p.copy()
+        q["x"] //= b
+        q["y"] //= b
+        binned.append(q)
+    found = _detect_still(binned, coarse)
+    corners = (found.corners_px + 0.5) * b - 0.5
+    return replace(found, corners_px=corners, T_cam_world=_solve_pnp(corners, config))
 
 
 def region_cell_px(region: BlinkRegion, config: ReceiverConfig) -> float:
@@ -504,9 +543,14 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     img = burst_image(parts, burst, period, mask)
     if np.count_nonzero(img) < 16:
         raise MarkerNotFound("spatial: too few positive events at the blink phase")
-    quad = quadrilateral(outline(img))
+    lit = img > 0
+    quad = quadrilateral(outline(lit))
     check_quadrilateral(quad, params)
-    corners, score = orient(quad, img, config.geometry)
+    # Which pixels fire in phase reads a sparse sensor's 'L' best, how strongly they fire a
+    # blurred one's: the clearer reading decides.
+    corners, score = max(
+        (orient(quad, im, config.geometry) for im in (lit, img)), key=lambda o: o[1]
+    )
     if score < params.min_still_orientation_score:
         raise MarkerNotFound(
             f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
