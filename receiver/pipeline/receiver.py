@@ -139,8 +139,8 @@ class Track:
     """Frames in a row without the inner locator."""
     proven_at_us: int | None = None
     """Time of the latest frame that proved the lock: it passed its check (CRC, framed
-    profiles) or, for ``paper`` (no check of its own), read the locator's 'L' upright and
-    clear. None: unproven so far."""
+    profiles) or, for ``paper`` (no check of its own), ended a run of frames that read the
+    locator's 'L' upright (``upright``). None: unproven so far."""
 
     def verified_at(self, t_us: int) -> bool:
         """Whether a pose at ``t_us`` comes out verified: a proof before it holds then, or one
@@ -158,6 +158,13 @@ class Track:
             return False
         self.probation -= 1
         return self.probation == 0
+
+    def upright(self, min_turn_lead: float) -> bool:
+        """Whether each of the last ``turn_frames`` frames read the 'L' upright by
+        ``min_turn_lead``: ``paper``'s proof, as it has no check of its own. One frame is not
+        enough: under motion a pose a quarter turn off reads one now and then."""
+        leads = self.turn_leads
+        return len(leads) == leads.maxlen and min(leads) >= min_turn_lead
 
     def misturned(self, read: FrameRead, min_turn_lead: float) -> bool:
         """Record ``read``; whether the last ``turn_frames`` frames read the locator's 'L'
@@ -544,7 +551,7 @@ class Receiver:
             self.cell_px = cell_side_px(self.config, pose)
             if frame.payload_bits:
                 self._verified = (read.t_us, pose)
-            if frame.payload_bits or (not framed and track.turn_leads[-1] >= q.min_turn_lead):
+            if frame.payload_bits or (not framed and track.upright(q.min_turn_lead)):
                 track.proven_at_us = read.t_us
             out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]
