@@ -11,6 +11,7 @@ import pytest
 
 from bench.tracking import CAMERA
 from eventocc.occ.profiles import get_profile
+from eventocc.receiver.pipeline import decoder
 from eventocc.receiver.pipeline.buffer import EventColumns
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.decoder import CellReader
@@ -115,6 +116,25 @@ def test_the_threshold_follows_a_dim_payload():
     assert (dim[payload] < 0.5).sum() > 20
     read = CellReader(CONFIG, first_burst_us=0.0)._classify(0, _density(dim), 1000)
     assert np.array_equal(read.bits, payload)
+
+
+def test_what_lit_neighbours_spill_into_a_dark_cell_is_taken_off(monkeypatch):
+    # Blur: each lit 4-neighbour adds 0.25 of the contrast to a cell, each diagonal one 0.1,
+    # so a dark cell amid lit ones reads 1.4 and a lone lit cell 1.0.
+    rng = np.random.default_rng(5)
+    payload = rng.integers(0, 2, (16, 16)).astype(bool)
+    lit = CONFIG.geometry.inner_locator.copy()
+    lit[1:-1, 1:-1] = payload
+    padded = np.pad(lit, 1).astype(float)
+    sides = padded[:-2, 1:-1] + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:]
+    corners = padded[:-2, :-2] + padded[:-2, 2:] + padded[2:, :-2] + padded[2:, 2:]
+    blurred = lit + 0.25 * sides + 0.1 * corners + rng.normal(0, 0.02, lit.shape)
+    reader = CellReader(CONFIG, first_burst_us=0.0)
+    read = reader._classify(0, blurred, 1000)
+    assert np.array_equal(read.bits, payload)
+    # Taken as they are, the densities misread the dark cells amid lit ones.
+    monkeypatch.setattr(decoder, "_less_spill", lambda density, lit: density)
+    assert (reader._classify(0, blurred, 1000).bits != payload).sum() >= 3
 
 
 @pytest.mark.parametrize("colour", [0, 1])

@@ -300,6 +300,31 @@ def _cell_areas(to_grid: np.ndarray, n: int, margin: float) -> np.ndarray:
     return np.abs(dxu * dyv - dxv * dyu) * (1 - 2 * margin) ** 2
 
 
+_LEAST_SPILL = 0.02
+"""A spill per lit neighbour below this share of the lit cells' contrast is left alone: even
+with all eight neighbours lit it moves a cell by less than the quarter of the contrast that
+separates it from the threshold at the least."""
+
+
+def _less_spill(density: np.ndarray, lit: np.ndarray) -> np.ndarray:
+    """(n, n) cell densities less what lit neighbours spill into them.
+
+    Blur lights a dark cell's pixels from its lit neighbours, and the sensor answers the log of
+    the light, so a few per cent of a neighbour's light makes a dark cell fire almost as often
+    as a lit one: a dark cell amid lit ones can read lit. The spill per lit 4-neighbour is
+    fitted on the frame itself (``density ~ a + b * lit + c * sides + d * corners`` over every
+    cell, ``lit`` a first reading, ``sides`` and ``corners`` its lit 4- and diagonal neighbours),
+    so it follows the blur and the sensor there are; a spill the fit does not show
+    (``_LEAST_SPILL``) leaves the densities as they are."""
+    padded = np.pad(lit, 1).astype(np.float64)  # the black ring around the locator: unlit
+    sides = padded[:-2, 1:-1] + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:]
+    corners = padded[:-2, :-2] + padded[:-2, 2:] + padded[2:, :-2] + padded[2:, 2:]
+    A = np.stack([np.ones(lit.size), lit.ravel(), sides.ravel(), corners.ravel()], axis=1)
+    (_, contrast, side, corner), *_ = np.linalg.lstsq(A, density.ravel(), rcond=None)
+    least = _LEAST_SPILL * contrast
+    return density - (side > least) * side * sides - (corner > least) * corner * corners
+
+
 def _two_means(values: np.ndarray, dark: float, bright: float) -> float:
     """Threshold midway between the means of the dark and the bright ``values``, from Lloyd's
     iterations started at the ``dark`` and ``bright`` references. The payload's own clusters
@@ -564,18 +589,45 @@ class CellReader:
         self.gate, self._gate_fitted = (float(fit[0]), float(fit[1])), True
 
     def _classify(self, m: int, density: np.ndarray, pixels: int) -> FrameRead:
-        """Bits from the cells' event densities, against the ring's white and black cells."""
+        """Bits from the cells' event densities, against the ring's white and black cells,
+        once less what the lit neighbours spill into each cell (``_less_spill``)."""
+        white_ref, black_ref, bits = self._split(density)
+        # The locator's readings take the densities as they are: the spill's fit assumes the
+        # 'L' upright, which they judge.
+        score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
+        cells = self._ring_cells
+        ring = density[cells[:, 1], cells[:, 0]]
+        turns = turn_readings(density, self.config.geometry) / max(float(ring.mean()), 1e-9)
+        raw = density
+        for _ in range(2):  # the second pass fits the spill on the bits the first corrected
+            density = _less_spill(raw, self._lit(bits))
+            white_ref, black_ref, bits = self._split(density)
+        payload = density[1:-1, 1:-1]
+        threshold = self._threshold(payload, white_ref, black_ref)
+        sure = self.config.decoder.sure_contrast * max(white_ref - black_ref, 1e-9)
+        confidence = np.clip(np.abs(payload - threshold) / sure, 0.0, 1.0)
+        return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
+
+    def _split(self, density: np.ndarray) -> tuple[float, float, np.ndarray]:
+        """(white and black references of the ring, payload bits) of (n, n) densities."""
         cells = self._ring_cells
         ring = density[cells[:, 1], cells[:, 0]]
         white_ref = float(np.median(ring[self._ring_white]))
         black_ref = float(np.median(ring[~self._ring_white]))
-        contrast = max(white_ref - black_ref, 1e-9)
         payload = density[1:-1, 1:-1]
+        bits = (payload > self._threshold(payload, white_ref, black_ref)).astype(np.uint8)
+        return white_ref, black_ref, bits
+
+    @staticmethod
+    def _threshold(payload: np.ndarray, white_ref: float, black_ref: float) -> float:
+        contrast = max(white_ref - black_ref, 1e-9)
         lo, hi = (black_ref + share * contrast for share in _SPLIT_RANGE)
-        threshold = min(max(_two_means(payload, black_ref, white_ref), lo), hi)
-        bits = (payload > threshold).astype(np.uint8)
-        sure = self.config.decoder.sure_contrast * contrast
-        confidence = np.clip(np.abs(payload - threshold) / sure, 0.0, 1.0)
-        score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
-        turns = turn_readings(density, self.config.geometry) / max(float(ring.mean()), 1e-9)
-        return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
+        return min(max(_two_means(payload, black_ref, white_ref), lo), hi)
+
+    def _lit(self, bits: np.ndarray) -> np.ndarray:
+        """(n, n) bool: the locator ring as it is drawn around the payload ``bits``."""
+        lit = np.zeros((self.n, self.n), bool)
+        cells = self._ring_cells
+        lit[cells[:, 1], cells[:, 0]] = self._ring_white
+        lit[1:-1, 1:-1] = bits > 0
+        return lit
