@@ -290,8 +290,10 @@ def _easy(index: int, **changes) -> SceneDraw:
             "start_refresh": 0,
         },
         {"cell_px": 6.0, "flow_px_per_ms": 0.3, "width": 640, "height": 480, "hfov_deg": 60.0},
+        # A noisy sensor: between the refreshes a still ring shows only leak and shot noise.
+        {"cell_px": 8.0, "shot_hz": 2.0, "leak_hz": 0.5},
     ],
-    ids=["still", "still-bars-paper", "hand-held"],
+    ids=["still", "still-bars-paper", "hand-held", "still-noisy"],
 )
 def test_easy_scenes_lock_on_time_read_the_message_and_track_right(changes):
     r = run_scene(_easy(4, **changes))

@@ -565,6 +565,7 @@ def test_cluster_assignment_matches_a_plain_loop(seed, moving):
     va, vb = rng.normal(0, 0.005 * moving, (2, 8, 2))  # px/us
     gate, band, cap = tracker._gate, tracker._band, tracker._cap
     expected_t = np.full(tracker._slots[2].shape, -1)
+    expected_spread = np.zeros((8, 4), np.int64)
     near_count = on_count = 0
     for i in range(len(t)):
         near = on = False
@@ -575,18 +576,21 @@ def test_cluster_assignment_matches_a_plain_loop(seed, moving):
             p = np.array([xu[i], yu[i]]) - (va[e] + w0 * (vb[e] - va[e])) * dt
             d, w = _distance(*p, a, b)
             near |= d <= band[e]
+            if d <= 2 * gate[e]:  # by distance, in bins half a gate wide
+                expected_spread[e, min(int(d * 2 / gate[e]), 3)] += 1
             if d <= gate[e]:
                 on = True
                 expected_t[e, min(int(w * cap[e]), cap[e] - 1)] = t[i]
         near_count += near
         on_count += near and on
     sx, sy, st_, sd, sum_d, n_valid = tracker._slots
-    fit = np.zeros(3, np.int64)
+    fit, spread = np.zeros(3, np.int64), np.zeros((8, 4), np.int64)
     a, b = tracker._a, tracker._b
-    args = (a, b, va, vb, ref_us, gate, band, cap, sx, sy, st_, sd, sum_d, n_valid, fit)
+    args = (a, b, va, vb, ref_us, gate, band, cap, sx, sy, st_, sd, sum_d, n_valid, fit, spread)
     _assign(xu, yu, t, 0, *args, 1 << 62, 1 << 62, q.min_fill, q.min_new_events, q.carry_us)
     assert np.array_equal(st_, expected_t)
     assert fit[:2].tolist() == [near_count, on_count]
+    assert np.array_equal(spread, expected_spread)
     assert n_valid.tolist() == (expected_t >= 0).sum(axis=1).tolist()
     assert np.allclose(sum_d, np.where(st_ >= 0, sd, 0.0).sum(axis=1))
 

@@ -14,7 +14,7 @@ from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.pipeline import tracker as tracker_module
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.metrics import pose_errors
-from eventocc.receiver.pipeline.pose import project_ideal
+from eventocc.receiver.pipeline.pose import plane_homography, project_ideal
 from eventocc.receiver.pipeline.receiver import (
     DETECTING,
     TRACKING,
@@ -93,6 +93,46 @@ def test_noise_far_from_the_edges_leaves_the_pose_alone():
     t = np.sort(rng.integers(0, 50_000, np.count_nonzero(far)))
     assert tracker.push(x[far], y[far], t) == []
     assert np.allclose(tracker.T_cam_world, truth)
+
+
+def test_a_still_markers_noise_on_its_edges_leaves_the_pose_alone():
+    # A still marker's ring fires nothing: a noisy sensor's leak and shot noise alone fill the
+    # clusters, three times denser on the dark rings than on the white one (shot noise fires
+    # more in the dark). Fits of that noise would walk the pose away; the same noise beside
+    # the events of edges that move must not stop the tracking.
+    truth = invert(_view(tilt=8, roll=5))
+    tracker = EdgeTracker(CONFIG, truth.copy())
+    a, b = tracker._project_edges(truth)
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(100, 250, 120_000), rng.uniform(50, 210, 120_000)
+    near = _nearest_edge(x, y, a, b, 2 * CONFIG.tracker.gate_px)[0] < np.inf
+    u, v, w = np.linalg.inv(plane_homography(truth, K)) @ np.stack([x, y, np.ones_like(x)])
+    ring = CONFIG.geometry.ring * CONFIG.geometry.cell_size_m(SIZE)
+    mx, my = u / w, v / w
+    white = np.all((np.stack([mx, my]) > 0) & (np.stack([mx, my]) < SIZE), axis=0)
+    white &= ~np.all((np.stack([mx, my]) > ring) & (np.stack([mx, my]) < SIZE - ring), axis=0)
+    keep = near & (white | (rng.random(len(x)) < 3 / 4)) & (rng.random(len(x)) < 1 / 3)
+    x, y = x[keep], y[keep]
+    t = np.sort(rng.integers(0, 100_000, len(x)))
+    updates = []
+    for lo in range(0, 100_000, 2000):
+        part = (t >= lo) & (t < lo + 2000)
+        updates += tracker.push(x[part], y[part], t[part])
+    assert min(np.count_nonzero(tracker._slots[2] >= 70_000, axis=1)) > 0.5 * min(tracker._cap)
+    assert updates == [] and np.array_equal(tracker.T_cam_world, truth)
+    moved = _nudge(truth, 0.2, 0.003)
+    for k in range(10):  # the same noise again, and the edges' events at the moved pose
+        ex, ey, et = _edge_events(moved, 100_000 + 1000 * k, seed=k)
+        part = (t >= 1000 * k) & (t < 1000 * k + 1000)
+        nx, ny, nt = x[part], y[part], t[part] + 100_000
+        order = np.argsort(np.concatenate([et, nt]), kind="stable")
+        updates += tracker.push(
+            np.concatenate([ex, nx])[order],
+            np.concatenate([ey, ny])[order],
+            np.concatenate([et, nt])[order],
+        )
+    assert updates, "a moving edge's events must move the pose through the noise"
+    assert _position_error(tracker.T_cam_world, moved) < 0.01
 
 
 def test_a_silent_outer_edge_swept_by_the_motion_contradicts_the_pose():

@@ -115,8 +115,15 @@ class TrackerParams:
     alpha: float = 0.3
     """Cluster slots per pixel of edge length."""
     min_fill: float = 0.25
-    """An edge's latency indicator counts once this share of its slots is filled (noise rarely
-    fills a cluster)."""
+    """An edge's latency indicator counts once this share of its slots is filled (a quiet
+    sensor's noise rarely fills a cluster; a noisy one's does, and ``min_firing_chi2`` keeps
+    such clusters from moving the pose)."""
+    min_firing_chi2: float = 25.0
+    """The pose is re-solved only if an outer edge fired since the last update: its events
+    within two gates pile up at some distance from it, by Pearson's chi-square against an even
+    spread above this (3 degrees of freedom; noise alone exceeds 25 once in 60,000 tests).
+    A still marker's edges fire nothing, and its clusters then fill with the sensor's leak and
+    shot noise alone, whose fits walk the pose away (``tracker._edges_firing``)."""
     min_update_interval_us: int = 250
     """At most one pose update per interval (the authors' 4 kHz tick)."""
     max_update_interval_us: int = 1000

@@ -14,6 +14,11 @@ before it is gated and binned, and at an update the clusters are carried forward
 update's time. Static edges leave the pose behind the events, and under fast motion off the
 ring.
 
+A pose update must follow the marker, not the sensor: a still marker's ring fires nothing, and
+a noisy sensor's leak and shot noise alone then fill the clusters, whose fits would walk the pose
+away. An update needs an outer edge that fired since the last one, its events piled up at some
+distance from it rather than spread evenly as noise spreads (``_edges_firing``).
+
 Unlike the authors' tracker, this one also says when it is wrong: events in a band one ring wide
 around the edges should lie on the edges; when most of them do not, the pose has slipped (see
 ``EdgeTracker.fit_ratio``). And a pose from detection is first pulled onto the ring's edges with
@@ -42,6 +47,9 @@ _LOCATOR_GAP = 0.6
 _CAPTURE_MIN_EVENTS = 50
 _BLOCK = 64
 """Events whose distances to the edges ``_assign`` computes at a time."""
+_SPREAD_BINS = 4
+"""Bins of distance to an edge, out to two gates, that tell a firing edge from noise
+(``_edges_firing``): half a gate wide, so that a lagging edge's events pile up in one."""
 _BIT_INDEX = np.zeros(37, np.int64)
 _BIT_INDEX[[(1 << e) % 37 for e in range(36)]] = range(36)
 """Index of the single set bit of ``1 << e`` at ``(1 << e) % 37`` (the remainders of the
@@ -210,6 +218,7 @@ def _assign(
     sum_d,
     n_valid,
     fit,
+    spread,
     due_us,
     force_us,
     min_fill,
@@ -217,7 +226,9 @@ def _assign(
     carry_us,
 ):
     """Add events ``start..`` to the clusters and count, in ``fit``, events in the band around
-    the edges, those of them on an edge, and events on an edge since the last update. The edges
+    the edges, those of them on an edge, and events on an edge since the last update; and per
+    edge, in ``spread``, the events by their distance to it in ``_SPREAD_BINS`` bins out to two
+    gates (``_edges_firing``). The edges
     a -> b hold at ``ref_us`` and move at the ends' velocities ``va``, ``vb`` (px/us): each event
     is carried back to ``ref_us`` (``carry_us`` at most) along an edge's motion before it is
     measured and binned. Stop after the first event that makes more than one indicator exceed
@@ -232,16 +243,18 @@ def _assign(
     dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
     vx, vy = va[:, 0].copy(), va[:, 1].copy()
     dvx, dvy = vb[:, 0] - va[:, 0], vb[:, 1] - va[:, 1]  # the velocity varies linearly along it
-    inv = np.empty(m)
+    inv, per_px = np.empty(m), np.empty(m)
     late = np.zeros(m, np.bool_)
     for e in range(m):
         inv[e] = _inv_len2(dx[e], dy[e])
+        per_px[e] = _SPREAD_BINS / (2.0 * gate[e])  # ``spread``'s bins per pixel of distance
         late[e] = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
     n_late = late.sum()  # kept up to date as events join, instead of recounted per event
     x, y, dt = np.empty(_BLOCK), np.empty(_BLOCK), np.empty(_BLOCK)
     qx, qy = np.empty((m, _BLOCK)), np.empty((m, _BLOCK))
     along, dist = np.empty((m, _BLOCK)), np.empty((m, _BLOCK))
     on_edges, near = np.empty(_BLOCK, np.int64), np.empty(_BLOCK, np.bool_)
+    in_strip = np.empty(_BLOCK, np.int64)
     for b0 in range(start, t.shape[0], _BLOCK):
         nb = min(_BLOCK, t.shape[0] - b0)
         for j in range(nb):
@@ -256,11 +269,13 @@ def _assign(
                 qx[e, j], qy[e, j] = px, py
         # Which edges each event is on (bit e), and whether it is in the band: also edge by
         # edge, since tested per event the eight gates' branches mispredict.
-        on_edges[:nb], near[:nb] = 0, False
+        on_edges[:nb], near[:nb], in_strip[:nb] = 0, False, 0
         for e in range(m):
             for j in range(nb):
                 on_edges[j] |= np.int64(dist[e, j] <= gate[e]) << e
                 near[j] |= dist[e, j] <= band[e]
+                beyond = (dist[e, j] > gate[e]) & (dist[e, j] <= 2.0 * gate[e])
+                in_strip[j] |= np.int64(beyond) << e  # counted in ``spread`` only
         for j in range(nb):
             i = b0 + j
             edges = on_edges[j]
@@ -269,6 +284,7 @@ def _assign(
                 edges ^= lowest
                 e = _BIT_INDEX[lowest % 37]
                 d = dist[e, j]
+                spread[e, min(int(d * per_px[e]), _SPREAD_BINS - 1)] += 1
                 # Into bin s, replacing its older event in the count and distance sum. Written
                 # out here: a helper taking the six arrays makes numba keep a dozen atomic
                 # reference counts per call.
@@ -282,6 +298,12 @@ def _assign(
                 now_late = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
                 n_late += now_late - late[e]
                 late[e] = now_late
+            strip = in_strip[j]
+            while strip:
+                lowest = strip & -strip
+                strip ^= lowest
+                e = _BIT_INDEX[lowest % 37]
+                spread[e, min(int(dist[e, j] * per_px[e]), _SPREAD_BINS - 1)] += 1
             on = on_edges[j] != 0
             if near[j]:
                 fit[0] += 1
@@ -349,6 +371,38 @@ def _supported_edges(st, since_us, cap, min_fill):
             fresh += st[e, s] >= since_us
         supported[e] = fresh >= max(3, min_fill * cap[e])
     return supported
+
+
+@numba.njit(cache=True, nogil=True)
+def _edges_firing(spread, a, b, gate, min_chi2):
+    """Which edges fire: their events since the last update (``spread``: counts by distance in
+    ``_SPREAD_BINS`` bins out to two gates) pile up at some distance, rather than spread as
+    evenly over the bins' areas as the sensor's leak and shot noise do (Pearson's chi-square
+    against that even spread above ``min_chi2``).
+
+    Out to two gates the marker is static on both sides of the ring's edges (the white ring,
+    the black rings beside it; the inner gates keep away from the blinking locator), so while
+    it stands still only noise fires there: however fully the noise fills the clusters, it
+    never piles up along an edge. A moving edge does, at its offset from the projected one
+    when the pose lags, and whatever the noise's density. Each bin straddles the edge, as
+    wide on its bright side as on its dark one, so a noise density differing between the white
+    ring and the dark rings (shot noise fires more in the dark) spreads evenly all the same."""
+    m, k = spread.shape
+    firing = np.zeros(m, np.bool_)
+    for e in range(m):
+        n = spread[e].sum()
+        if n == 0:
+            continue
+        dx, dy = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+        length, w = np.sqrt(dx * dx + dy * dy), 2.0 * gate[e] / k
+        total = 2.0 * length * k * w + np.pi * (k * w) ** 2  # the area out to two gates
+        chi2 = 0.0
+        for i in range(k):
+            area = 2.0 * length * w + np.pi * w * w * (2 * i + 1)  # distances i*w .. (i+1)*w
+            expected = n * area / total
+            chi2 += (spread[e, i] - expected) ** 2 / expected
+        firing[e] = chi2 > min_chi2
+    return firing
 
 
 @numba.njit(cache=True, nogil=True)
@@ -458,6 +512,9 @@ class EdgeTracker:
         """Times and the edges' projected ends of the latest ``_n_recent`` poses."""
         self._n_recent = 0
         self._fit = np.zeros(3, np.int64)
+        self._spread = np.zeros((8, _SPREAD_BINS), np.int64)
+        """Per edge, the events since the last update by their distance to it
+        (``_edges_firing``)."""
         self.fit_history: deque[float] = deque(maxlen=config.tracker.fit_judgements)
         """The latest ``fit_judgements`` fit ratios, oldest first."""
         self.silent_history: deque[int] = deque(maxlen=config.tracker.silent_updates)
@@ -622,6 +679,7 @@ class EdgeTracker:
                 sum_d,
                 n_valid,
                 self._fit,
+                self._spread,
                 self.last_update_us + q.min_update_interval_us,
                 self.last_update_us + q.max_update_interval_us,
                 q.min_fill,
@@ -643,16 +701,23 @@ class EdgeTracker:
         return updates
 
     def _update(self, now_us: int) -> TrackUpdate | None:
-        """Re-solve the pose, unless too few edges hold fresh events (sensor noise alone must not
-        move a camera that stands still)."""
+        """Re-solve the pose, unless too few edges hold fresh events, or no outer edge has fired
+        since the last update (``_edges_firing``): noise alone must not move a camera that
+        stands still, however fully it fills the clusters. The outer edges alone judge: the
+        blinking locator lies a ring width inside the inner ones, two gates off at the least,
+        which a blurred burst reaches. Under motion at least two of them fire, those the image
+        crosses (motion along an edge fires nothing there), while the others' clusters still
+        hold what they fired last."""
         sx, sy, st = self._slots[:3]
         q = self.config.tracker
         self.last_update_us = now_us
         self._fit[2] = 0
         since = max(0, now_us - q.max_age_us)
         supported = _supported_edges(st, since, self._cap, q.min_fill)
+        firing = _edges_firing(self._spread, self._a, self._b, self._gate, q.min_firing_chi2)
+        self._spread[:] = 0
         self.silent_history.append(self.silent_edges(supported))
-        if np.count_nonzero(supported) < _MIN_EDGES:
+        if np.count_nonzero(supported) < _MIN_EDGES or not firing[:4].any():
             self._age_out(now_us)
             return None
         _carry(sx, sy, st, self._cap, self._va, self._vb, self._ref_us, now_us, q.carry_us)
