@@ -1,12 +1,13 @@
 """The randomized scene suite: the receiver over the range real cameras and screens span.
 
-    python -m bench.scenes [--scenes 240] [--seed 0] [--jobs 2] [--out docs]
+    python -m bench.scenes [--scenes 240] [--seed 0] [--jobs 2] [--out docs] [--targets-only]
 
 Draws ``--scenes`` scenes of the suite of ``--seed`` (``bench.scenes.draw``), simulates each and
 runs the streaming receiver on it (``bench.scenes.run``), then writes the per-scene results to
 ``<out>/results/scenes.json`` and the distributions (``bench.scenes.summary``) to its section of
-``<out>/BENCHMARKS.md``. Scenes run ``--jobs`` at a time, with the same results for any number
-of jobs. Each scene's result is printed as it completes, and ``--resume`` takes those of an
+``<out>/BENCHMARKS.md``; ``--targets-only`` runs just the scenes the issue's targets cover.
+Scenes run ``--jobs`` at a time, with the same results for any number of jobs. Each scene's
+result is printed as it completes, and ``--resume`` takes those of an
 earlier run's output; ``--only`` reruns chosen scene indices and prints their results without
 writing, and ``--report-only`` rewrites the section from the saved results.
 """
@@ -25,7 +26,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")  # one core per job: --jobs sets
 from bench.report import write_section
 from bench.scenes.draw import draw
 from bench.scenes.run import earlier_results, run_scene
-from bench.scenes.summary import summarise
+from bench.scenes.summary import in_targets, summarise
 
 DOCS = Path(__file__).resolve().parent.parent.parent / "docs"
 
@@ -90,6 +91,11 @@ def main(argv: list[str] | None = None) -> None:
         help="take the scenes an earlier run printed (its output) instead of running them again",
     )
     parser.add_argument(
+        "--targets-only",
+        action="store_true",
+        help="run only the drawn scenes that the issue's targets cover",
+    )
+    parser.add_argument(
         "--report-only",
         action="store_true",
         help="rewrite the section from <out>/results/scenes.json without running",
@@ -100,6 +106,8 @@ def main(argv: list[str] | None = None) -> None:
         print(write_report(json.loads(saved.read_text()), args.out))
         return
     indices = args.only or list(range(args.scenes))
+    if args.targets_only:
+        indices = [i for i in indices if in_targets(draw(args.seed, i).to_dict())]
     t0 = time.perf_counter()
     done = earlier_results(args.resume, args.seed) if args.resume else {}
     results = run_suite(args.seed, indices, args.jobs, done)
@@ -109,7 +117,7 @@ def main(argv: list[str] | None = None) -> None:
     resumed = sum(i in done for i in indices)
     run = {
         "command": f"python -m bench.scenes --scenes {args.scenes} --seed {args.seed} "
-        f"--jobs {args.jobs}",
+        f"--jobs {args.jobs}" + (" --targets-only" if args.targets_only else ""),
         "wall_s": time.perf_counter() - t0,
         "jobs": args.jobs,
         "resumed": resumed,

@@ -135,13 +135,14 @@ def _num(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x:.2f}"
 
 
+def in_targets(draw: dict) -> bool:
+    """Whether the issue's targets cover a scene drawn so (``SceneDraw.to_dict``)."""
+    return draw["cell_px"] >= TARGET_CELL_PX and draw["flow_px_per_ms"] <= TARGET_FLOW
+
+
 def targets(results: list[Result]) -> tuple[str, list[Result]]:
     """The issue's targets against the suite: a paragraph, and the scenes they cover."""
-    covered = [
-        r
-        for r in results
-        if r["draw"]["cell_px"] >= TARGET_CELL_PX and r["draw"]["flow_px_per_ms"] <= TARGET_FLOW
-    ]
+    covered = [r for r in results if in_targets(r["draw"])]
     lock = _share([r["lock_ok"] for r in covered])
     poses = sum(r["pose_poses"] for r in covered)
     off = sum(round(r["pose_off_share"] * r["pose_poses"]) for r in covered if r["pose_poses"])
