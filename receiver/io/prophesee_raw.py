@@ -67,14 +67,16 @@ def new_decoder_state(monotonic: bool = False) -> np.ndarray:
 
 
 @njit(inline="always")
-def _push(ot, ox, oy, op, n, t, x, y, p, width, height):
-    """Store one event if it lies on the sensor; returns an outcome code."""
-    if x >= width or y >= height:
+def _push(out, n, t, x, y, p, sensor):
+    """Store one event as ``out[n]`` if it lies on the ``sensor`` = (width, height); returns an
+    outcome code."""
+    if x >= sensor[0] or y >= sensor[1]:
         return OUTSIDE
-    ot[n] = t
-    ox[n] = x
-    oy[n] = y
-    op[n] = 1 if p else -1
+    e = out[n]
+    e.t = t
+    e.x = x
+    e.y = y
+    e.p = 1 if p else -1
     return OK
 
 
@@ -87,7 +89,7 @@ def _advance_time(t, t_max):
 
 
 @njit(cache=True, nogil=True)
-def _decode_evt3(words, state, ot, ox, oy, op, width, height):
+def _decode_evt3(words, state, out, sensor):
     """Decode EVT 3.0 words until the output is nearly full; returns (events, words, outcome).
 
     The state lives in locals inside the loop (numba keeps them in registers) and goes back
@@ -100,7 +102,7 @@ def _decode_evt3(words, state, ot, ox, oy, op, width, height):
     n = 0
     err = OK
     i = 0
-    room = len(ot) - 12
+    room = len(out) - 12
     while i < len(words) and n <= room:
         w = np.int64(words[i])
         kind = w >> 12
@@ -110,7 +112,7 @@ def _decode_evt3(words, state, ot, ox, oy, op, width, height):
             elif row < 0:
                 err = NO_ROW
             else:
-                err = _push(ot, ox, oy, op, n, t, w & 0x7FF, row, (w >> 11) & 1, width, height)
+                err = _push(out, n, t, w & 0x7FF, row, (w >> 11) & 1, sensor)
                 n += err == OK
         elif kind == 0x0:  # EVT_ADDR_Y
             row = w & 0x7FF
@@ -141,7 +143,7 @@ def _decode_evt3(words, state, ot, ox, oy, op, width, height):
             else:
                 for j in range(bits):
                     if (w >> j) & 1:
-                        err = _push(ot, ox, oy, op, n, t, base + j, row, vect_p, width, height)
+                        err = _push(out, n, t, base + j, row, vect_p, sensor)
                         if err != OK:
                             break
                         n += 1
@@ -158,13 +160,13 @@ def _decode_evt3(words, state, ot, ox, oy, op, width, height):
 
 
 @njit(cache=True, nogil=True)
-def _decode_evt2(words, state, ot, ox, oy, op, width, height):
+def _decode_evt2(words, state, out, sensor):
     """Decode EVT 2.0 words (see ``_decode_evt3`` for the contract)."""
     t_max, high = state[T_MAX], state[TIME_HIGH]
     n = 0
     err = OK
     i = 0
-    room = len(ot) - 1
+    room = len(out) - 1
     while i < len(words) and n <= room:
         w = np.int64(words[i])
         kind = w >> 28
@@ -173,17 +175,13 @@ def _decode_evt2(words, state, ot, ox, oy, op, width, height):
                 err = NO_TIME
             else:
                 err = _push(
-                    ot,
-                    ox,
-                    oy,
-                    op,
+                    out,
                     n,
                     (high << 6) | ((w >> 22) & 0x3F),
                     (w >> 11) & 0x7FF,
                     w & 0x7FF,
                     kind,
-                    width,
-                    height,
+                    sensor,
                 )
                 n += err == OK
         elif kind == 0x8:  # EVT_TIME_HIGH: t[33:6]
@@ -199,13 +197,13 @@ def _decode_evt2(words, state, ot, ox, oy, op, width, height):
 
 
 @njit(cache=True, nogil=True)
-def _decode_evt21(words, state, ot, ox, oy, op, width, height):
+def _decode_evt21(words, state, out, sensor):
     """Decode EVT 2.1 words, each a logical u64 (see ``_decode_evt3`` for the contract)."""
     t_max, high = state[T_MAX], state[TIME_HIGH]
     n = 0
     err = OK
     i = 0
-    room = len(ot) - 32
+    room = len(out) - 32
     while i < len(words) and n <= room:
         w = np.int64(words[i])
         kind = (w >> 60) & 0xF
@@ -218,7 +216,7 @@ def _decode_evt21(words, state, ot, ox, oy, op, width, height):
                 y = (w >> 32) & 0x7FF
                 for j in range(32):
                     if (w >> j) & 1:
-                        err = _push(ot, ox, oy, op, n, t, x + j, y, kind, width, height)
+                        err = _push(out, n, t, x + j, y, kind, sensor)
                         if err != OK:
                             break
                         n += 1
@@ -320,9 +318,7 @@ def _decode_file(
             while done < len(words):
                 size = min(CHUNK_EVENTS, (len(words) - done) * enc.max_events_per_word)
                 out = np.empty(size, EVENT_DTYPE)
-                n, used, err = enc.decode(
-                    words[done:], state, out["t"], out["x"], out["y"], out["p"], limit_w, limit_h
-                )
+                n, used, err = enc.decode(words[done:], state, out, (limit_w, limit_h))
                 done += used
                 position = offset + done * enc.word_bytes
                 if n:  # copy a mostly empty buffer rather than keep it alive

@@ -176,9 +176,11 @@ def _grid_coords(t, xu, yu, step_edges, to_grid):
 
 
 @numba.njit(cache=True, nogil=True)
-def _locator_bursts(t, p, u, v, white, mid, slope, gate_lo, gate_hi):
-    """(row, time after the row's predicted burst) of the ON bursts on the locator's white
-    cells inside the gate."""
+def _locator_bursts(bursts, white, timing):
+    """(row, time after the row's predicted burst) of the ON ``bursts`` = (t, p, u, v) on the
+    locator's white cells inside the gate of ``timing`` (``_cell_bursts``)."""
+    t, p, u, v = bursts
+    mid, slope, gate_lo, gate_hi = timing
     n = white.shape[0]
     rows = np.empty(t.shape[0], np.int64)
     dts = np.empty(t.shape[0], np.float64)
@@ -247,9 +249,14 @@ def _inner_cell(u, v, n, margin):
 
 
 @numba.njit(cache=True, nogil=True)
-def _cell_bursts(t, p, u, v, n, mid, slope, gate_lo, gate_hi, on_only, margin, shifts):
-    """(shifts, n, n) count of the bursts inside each cell's inner part and its row's time
-    gate, on the grid moved by each of the (du, dv) ``shifts`` (cells)."""
+def _cell_bursts(bursts, n, timing, on_only, margin, shifts):
+    """(shifts, n, n) count of the ``bursts`` = (t, p, u, v) (time, polarity, grid point)
+    inside each cell's inner part and its row's time gate, on the grid moved by each of the
+    (du, dv) ``shifts`` (cells). ``timing`` = (mid, slope, gate_lo, gate_hi): a burst at grid
+    height ``v`` is predicted at ``mid + (v - 0.5 - n / 2) * slope`` and read within
+    [gate_lo, gate_hi] of that."""
+    t, p, u, v = bursts
+    mid, slope, gate_lo, gate_hi = timing
     count = np.zeros((shifts.shape[0], n, n), np.int32)
     for i in range(t.shape[0]):
         if on_only and p[i] <= 0:
@@ -488,7 +495,8 @@ class CellReader:
         """(shifts, n, n) cell counts of frame ``m`` on the grid moved by each shift."""
         mid, slope, margin = self.clock.mid(m), self.clock.slope_us, self.config.decoder.cell_margin
         on_only = self._on_only
-        return _cell_bursts(t, p, u, v, self.n, mid, slope, *self.gate, on_only, margin, shifts)
+        timing = (mid, slope, *self.gate)
+        return _cell_bursts((t, p, u, v), self.n, timing, on_only, margin, shifts)
 
     def _inner_pixels(self, T_cam_world: np.ndarray, to_grid: np.ndarray, still: bool):
         """(n, n) pixels inside each cell's inner part (at least one), so that a cell reads as
@@ -567,7 +575,7 @@ class CellReader:
         """(row, time after the row's predicted burst) of frame ``m``'s ON bursts on the
         locator's white cells inside ``gate``."""
         mid, slope = self.clock.mid(m), self.clock.slope_us
-        return _locator_bursts(t, p, u, v, self._white, mid, slope, *gate)
+        return _locator_bursts((t, p, u, v), self._white, (mid, slope, *gate))
 
     def _narrow_gate(self, m: int, t, p, u, v) -> None:
         """Fit the read gate to the spread of the locator's white-cell ON bursts around their

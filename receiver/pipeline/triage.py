@@ -129,16 +129,17 @@ def _take(events, index, count, t, x, y, p, k):
 
 
 @numba.njit(cache=True, nogil=True)
-def _triage(
-    events, pixels, epoch, gap_us, tiles, grid_y, grid_x, dense, every, first, mark, mark2, rare
-):
+def _triage(events, bursts, grid, selection):
     """Update ``pixels[grid_y[y] + grid_x[x], polarity] = (latest burst's start, its last event,
     first burst's start from ``mark`` on, from ``mark2`` on)`` (the surface's pixels in one
     row-major axis) from the pixels on the stride's grid (``grid_*`` negative off it; ``dense``:
     every pixel is on it); return the columns (t, x, y, p) of the events on the marked
     ``tiles``, of every ``every``-th event from index ``first`` on (``first < every``: a call
     continuing another's thinning). ``rare``: few events lie on the marked tiles
-    (``_RARE_SHARE``).
+    (``_RARE_SHARE``). Three records: ``bursts`` = (pixels, epoch, gap_us, mark, mark2) (times
+    since ``epoch``), ``grid`` = (grid_y, grid_x, dense), ``selection`` = (tiles, every, first,
+    rare). Plain tuples, not NamedTuples: this runs per chunk, and building and typing those
+    costs a few microseconds a call.
 
     ``events`` is the structured chunk itself: numba reads each record's fields in one go,
     faster than four strided field views. With a stride, whether an event lies on the grid is a
@@ -146,6 +147,9 @@ def _triage(
     first gathered without one. Each block's near-edge records are copied out while they are in
     the L1 cache, rather than after the whole chunk (as the dense pass does, whose picks are
     few)."""
+    pixels, epoch, gap_us, mark, mark2 = bursts
+    grid_y, grid_x, dense = grid
+    tiles, every, first, rare = selection
     n = events.shape[0]
     size = -(-n // every)  # pages are touched only as far as written
     t, x, y = np.empty(size, np.int64), np.empty(size, np.uint16), np.empty(size, np.uint16)
@@ -188,10 +192,11 @@ def _new(surface, gy, gx, d, j, ts):
 
 
 @numba.njit(cache=True, nogil=True)
-def _bursts_between(surface, epoch, t0, t1, x0, x1, y0, y1, table, stride):
+def _bursts_between(surface, epoch, t0, t1, box, table, stride):
     """(t, x, y, p, xu, yu) of the bursts that began in ``[t0, t1)`` (since ``epoch``) on the
-    grid's pixels in the box, in one pass (the outputs are sized for every pixel, touched as
-    filled)."""
+    grid's pixels in ``box`` = (x0, x1, y0, y1), in one pass (the outputs are sized for every
+    pixel, touched as filled)."""
+    x0, x1, y0, y1 = box
     polarities = surface.shape[2]
     gy0, gy1 = -(-y0 // stride), -(-y1 // stride)
     gx0, gx1 = -(-x0 // stride), -(-x1 // stride)
@@ -356,17 +361,13 @@ class EventTriage:
         every = max(-int(-n * share // most), still_every if 0 < share < still_share else 1)
         epoch = self.epoch_us
         pixels = self.surface.reshape(-1, *self.surface.shape[2:])
+        marks = [min(max(m - epoch, _NEVER), 1 << 30) for m in self.marks_us]
+        bursts = (pixels, epoch, self.gap_us, *marks)
         grid = (*self._grid, self.stride == 1)
         rare = self._near_share < _RARE_SHARE
-        marks = [min(max(m - epoch, _NEVER), 1 << 30) for m in self.marks_us]
         near, seen = [], 0
         for p in parts:
-            first = -seen % every
-            near.append(
-                _triage(
-                    p, pixels, epoch, self.gap_us, self._tiles, *grid, every, first, *marks, rare
-                )
-            )
+            near.append(_triage(p, bursts, grid, (self._tiles, every, -seen % every, rare)))
             seen += len(p)
         columns = (
             near[0] if len(near) == 1 else [np.concatenate(c) for c in zip(*near, strict=True)]
@@ -393,5 +394,5 @@ class EventTriage:
         e = self.epoch_us
         lo, hi = max(t0 - e, _NEVER + 1), min(t1 - e, (1 << 31) - 1)
         return EventColumns(
-            *_bursts_between(self.surface, e, lo, hi, *box, self._table, self.stride)
+            *_bursts_between(self.surface, e, lo, hi, box, self._table, self.stride)
         )

@@ -59,6 +59,7 @@ from eventocc.receiver.sim.sensor import (
     REF,
     EventBuffer,
     PixelArray,
+    PixelSink,
     cross_linear,
     pixel_state,
 )
@@ -460,39 +461,47 @@ def _insertion_sort(a, m):
         a[q + 1] = x
 
 
+class Span(NamedTuple):
+    """The sub-steps one call of ``_moving_window`` renders: ``path`` spans ``q`` windows from
+    the start of window ``w``, window k ending at sub-step ``ends[k + 1]`` (``blocks`` = (w, q,
+    last): the recording ends with window ``last``); the pixels in ``box`` (x0, x1, y0, y1)
+    may see the screen. ``bounds``: (reach, step), upper bounds on the marker plane of the
+    distance from a pixel's centre point to its footprint samples and of how far that point
+    moves in one sub-step."""
+
+    path: np.ndarray
+    ends: np.ndarray
+    blocks: tuple[int, int, int]
+    box: tuple[int, int, int, int]
+    bounds: tuple[float, float]
+
+
+class CameraPixels(NamedTuple):
+    """Every pixel of a moving camera: its centre ray (rows, columns, 2), its footprint's
+    sample offsets from that ray, its dark floor and the time (us) up to which it is rendered
+    (both row-major)."""
+
+    rays: np.ndarray
+    offsets: np.ndarray
+    dark: np.ndarray
+    done: np.ndarray
+
+
 @numba.njit(cache=True, error_model="numpy")
-def _moving_window(
-    path,
-    box,
-    j_start,
-    bounds,
-    blocks,
-    ends,
-    closed_form,
-    rays,
-    offsets,
-    screen,
-    lum,
-    dark,
-    state,
-    done,
-    rfr,
-    out,
-):
-    """Events of the pixels ``j_start ..`` of ``box`` (x0, x1, y0, y1) over the sub-steps of
-    ``path``, which spans ``q`` windows from the start of window ``w``, window k ending at
-    sub-step ``ends[k + 1]`` (``blocks`` = (w, q, last): the recording ends with window
-    ``last``). A pixel rendered up to ``done`` past the first window is skipped; the others are
-    rendered to the end of their own block (``q`` windows, staggered by runs of pixels so that
-    each window renders a ``1/q`` share) or of the recording. ``bounds``: (reach, step), upper
-    bounds on the marker plane of the distance from a pixel's centre point to its footprint
-    samples and of how far that point moves in one sub-step. ``closed_form=False`` samples
-    every sub-step (the reference the runs are tested against). Returns (next pixel, count),
-    stopping early when the output is full."""
+def _moving_window(j_start, span, pixels, screen, lum, sink, closed_form):
+    """Events of the pixels ``j_start ..`` of ``span.box`` over the sub-steps of ``span``. A
+    pixel rendered up to ``done`` past the first window is skipped; the others are rendered to
+    the end of their own block (``q`` windows, staggered by runs of pixels so that each window
+    renders a ``1/q`` share) or of the recording. ``closed_form=False`` samples every sub-step
+    (the reference the runs are tested against). Returns (next pixel, count), stopping early
+    when the output is full."""
+    path, ends, blocks, box, bounds = span
+    rays, offsets, dark, done = pixels
     x0, x1, y0, y1 = box
     reach_m, step_m = bounds
     w, q, last = blocks
     geo, disp, rad = screen
+    state, rfr, out = sink
     if not closed_form:
         reach_m = np.inf
     width = rays.shape[1]
@@ -699,6 +708,7 @@ class MovingRenderer:
         self.state = pixel_state(level, pixels.threshold_on, pixels.threshold_off)
         self.done = np.zeros(cam.width * cam.height)
         """Time (us) up to which each pixel is rendered."""
+        self._pixels = CameraPixels(self.rays, self.offsets, self.dark, self.done)
         self.refractory = float(scene.sensor.refractory_us)
         self._out = EventBuffer()
         self._ahead: deque[list[np.ndarray]] = deque()
@@ -738,30 +748,25 @@ class MovingRenderer:
         if plan is None or t0 + q * self.chunk_us > plan.t_stop:
             plan = self._plan = self._make_plan(t0)
         k = (t0 - plan.t_start) // self.chunk_us
-        ends = plan.ends[k : k + q + 1] - plan.ends[k]
-        path = plan.path[plan.ends[k] : plan.ends[k + q] + 1]
-        blocks = (t0 // self.chunk_us, q, -(-(self.duration_us - t0) // self.chunk_us))
+        span = Span(
+            path=plan.path[plan.ends[k] : plan.ends[k + q] + 1],
+            ends=plan.ends[k : k + q + 1] - plan.ends[k],
+            blocks=(t0 // self.chunk_us, q, -(-(self.duration_us - t0) // self.chunk_us)),
+            box=plan.box,
+            bounds=plan.bounds,
+        )
         parts = [np.empty(0, EVENT_OUT_DTYPE)]  # the box is empty when the screen is out of view
         j, total = 0, (plan.box[1] - plan.box[0]) * (plan.box[3] - plan.box[2])
         while j < total:
             out = self._out.get()
-            j_next, n = _moving_window(
-                path,
-                plan.box,
+            j_next, n = _moving_window(  # plain tuples: numba types a NamedTuple slower
                 j,
-                plan.bounds,
-                blocks,
-                ends,
-                self.closed_form_runs,
-                self.rays,
-                self.offsets,
+                tuple(span),
+                tuple(self._pixels),
                 plan.screen,
                 plan.lum,
-                self.dark,
-                self.state,
-                self.done,
-                self.refractory,
-                out,
+                tuple(PixelSink(self.state, self.refractory, out)),
+                self.closed_form_runs,
             )
             parts.append(out[:n].copy())
             if j_next < total:

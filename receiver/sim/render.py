@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -32,6 +33,7 @@ from eventocc.receiver.sim.sensor import (
     PHOTORECEPTOR_REF_NITS,
     REF,
     EventBuffer,
+    PixelSink,
     cross_exponential,
     cross_linear,
     cross_relaxation,
@@ -151,42 +153,64 @@ def _group_cells(region: np.ndarray, sample_weight: np.ndarray):
     return ptr, cells[:q], weights[:q]
 
 
+class StillPixels(NamedTuple):
+    """A still camera's pixels that see cells, one entry each: the cells a pixel sees
+    (``cells[ptr[j] : ptr[j + 1]]``, with the share of its footprint on each), the constant part
+    of its light, its scan-out delay (screen-height fraction), and how far it is rendered (the
+    next display switch to render; whether its level rests on its cells' light)."""
+
+    ptr: np.ndarray
+    cells: np.ndarray
+    weights: np.ndarray
+    const: np.ndarray
+    scan_v: np.ndarray
+    next_switch: np.ndarray
+    at_rest: np.ndarray
+
+
+class Refreshes(NamedTuple):
+    """The display's refreshes from ``k_first`` on (a ``TimelineWindow``), indexed (refresh,
+    cell): the level each cell is driven to, its level at the switch, and whether those differ
+    enough for the cell to move during the refresh (``SETTLED_CONTRAST``)."""
+
+    k_first: int
+    target: np.ndarray
+    at_switch: np.ndarray
+    switching: np.ndarray
+
+
+class StillDisplay(NamedTuple):
+    """The display and photoreceptor as the still-camera kernel takes them (times in us)."""
+
+    start_refresh: int
+    """The refresh that reaches each pixel at its own scan-out delay after t = 0."""
+    period: float
+    scan: float
+    tau_rise: float
+    tau_fall: float
+    pwm: tuple[float, float]
+    """Backlight (period, on time); period 0: always on."""
+    skip_resting: bool
+    photo_k: float
+    """Photoreceptor time constant times luminance; 0: no low-pass."""
+
+
 @numba.njit(cache=True)
-def _static_window(
-    t1,
-    j_start,
-    pix_v,
-    pix_const,
-    ptr,
-    cells,
-    weights,
-    k_first,
-    target,
-    at_switch,
-    switching,
-    skip,
-    start_refresh,
-    period,
-    scan,
-    tau_rise,
-    tau_fall,
-    pwm,
-    next_switch,
-    at_rest,
-    state,
-    refractory,
-    out,
-    photo_k=0.0,
-):
+def _static_window(t1, j_start, pixels, refreshes, display, sink):
     """Events of the still-camera pixels ``j_start ..`` from their next display switch on, one
     whole refresh at a time, for every switch before ``t1`` (events may run up to a refresh
-    period past ``t1``: the caller holds them back). ``switching`` (refresh, cell): whether the
-    cell's level at the switch is off its target (it moves during that refresh). With ``skip``,
-    a refresh in which none of a pixel's cells moves is rendered once, which puts its level
-    exactly on their light (a transition whose tail ends on a threshold fires there, as when
-    every refresh is rendered), and skipped after that (``at_rest``). Returns (next pixel,
-    count): stops early, with that pixel untouched, when the output is full. ``photo_k`` > 0:
-    the photoreceptor low-pass (``filtered_segment``; no backlight PWM)."""
+    period past ``t1``: the caller holds them back). ``refreshes.switching`` (refresh, cell):
+    whether the cell's level at the switch is off its target (it moves during that refresh).
+    With ``display.skip_resting``, a refresh in which none of a pixel's cells moves is rendered
+    once, which puts its level exactly on their light (a transition whose tail ends on a
+    threshold fires there, as when every refresh is rendered), and skipped after that
+    (``at_rest``). Returns (next pixel, count): stops early, with that pixel untouched, when
+    the output is full. ``display.photo_k`` > 0: the photoreceptor low-pass
+    (``filtered_segment``; no backlight PWM)."""
+    ptr, cells, weights, pix_const, pix_v, next_switch, at_rest = pixels
+    k_first, target, at_switch, switching = refreshes
+    start_refresh, period, scan, tau_rise, tau_fall, pwm, skip, photo_k = display
+    state, refractory, out = sink
     n = 0
     nk = target.shape[0]
     for j in range(j_start, pix_v.shape[0]):
@@ -623,6 +647,15 @@ class StaticRenderer:
         self.at_rest = np.zeros(len(self.pix_index), bool)
         """Whether a pixel's level is exactly the light its cells hold (set by the first refresh
         in which none of them changes; until one does, its refreshes have nothing to render)."""
+        self._pixels = StillPixels(
+            self.ptr,
+            self.cells,
+            self.weights,
+            self.pix_const,
+            self.pix_v,
+            self.next_switch,
+            self.at_rest,
+        )
         self._out = EventBuffer()
 
     def irradiance_now(self) -> np.ndarray:
@@ -635,34 +668,29 @@ class StaticRenderer:
         d = self.timeline.display
         tl = self.timeline
         win = tl.window(tl.refresh_at(t0, 1.0), tl.refresh_at(t1, 0.0))
+        refreshes = Refreshes(
+            win.k_first,
+            win.target,
+            win.at_switch,
+            np.abs(win.at_switch - win.target) > SETTLED_CONTRAST * win.target,
+        )
+        display = StillDisplay(
+            tl.start_refresh,
+            d.period_us,
+            d.scan_us,
+            *self._tau,
+            self._pwm,
+            self.skip_resting and self._pwm[0] <= 0,  # a backlight gates resting cells too
+            self._photo_k,
+        )
         parts_t, parts_i, parts_p = [np.zeros(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
         j = 0
         while j < len(self.pix_index):
             out = self._out.get()
+            sink = PixelSink(self.state, self.refractory, out)
+            # Plain tuples: numba types a NamedTuple argument ~15 us slower per call.
             j_next, n = _static_window(
-                float(t1),
-                j,
-                self.pix_v,
-                self.pix_const,
-                self.ptr,
-                self.cells,
-                self.weights,
-                win.k_first,
-                win.target,
-                win.at_switch,
-                np.abs(win.at_switch - win.target) > SETTLED_CONTRAST * win.target,
-                self.skip_resting and self._pwm[0] <= 0,  # a backlight gates resting cells too
-                tl.start_refresh,
-                d.period_us,
-                d.scan_us,
-                *self._tau,
-                self._pwm,
-                self.next_switch,
-                self.at_rest,
-                self.state,
-                self.refractory,
-                out,
-                self._photo_k,
+                float(t1), j, tuple(self._pixels), tuple(refreshes), tuple(display), tuple(sink)
             )
             parts_t.append(out["t"][:n].copy())
             parts_i.append(self.pix_index[out["i"][:n]])
