@@ -6,6 +6,7 @@ Options override the ``EVENTOCC_*`` environment variables.
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 import uvicorn
@@ -34,8 +35,23 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
         raise SystemExit(f"eventocc-server: bad settings: {error}") from None
 
 
+LOG_HANDLER = logging.StreamHandler()
+LOG_HANDLER.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+
+
+def log_to_stderr() -> None:
+    """The service's own INFO lines (receivers connecting, messages received and whether they
+    were verified) beside uvicorn's: uvicorn sets up its loggers only, which left them unseen,
+    in ``docker compose logs`` too."""
+    logger = logging.getLogger("eventocc")
+    if LOG_HANDLER not in logger.handlers:
+        logger.addHandler(LOG_HANDLER)
+    logger.setLevel(logging.INFO)
+
+
 def main(argv: list[str] | None = None) -> None:
     settings = settings_from_args(parse_args(argv))
+    log_to_stderr()
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, **UVICORN_OPTIONS)
 
 

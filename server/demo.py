@@ -3,6 +3,8 @@ virtual event camera, print where to watch it.
 
 Ctrl-C stops everything. Each part of the demo is one step in ``main``. ``--motion`` picks the
 virtual camera's motion (``static`` or ``handheld``; default: the receiver's default).
+``--upload-to URL`` only uploads the sample to a server already running there and exits: the
+docker compose demo, whose server and receiver run in containers of their own, does that.
 """
 
 from __future__ import annotations
@@ -117,8 +119,18 @@ def main(argv: list[str] | None = None) -> None:
         choices=("static", "handheld"),  # the receiver's choices: the server cannot import it
         help="the virtual camera's motion (default: the receiver's default)",
     )
+    parser.add_argument(
+        "--upload-to",
+        metavar="URL",
+        help="only upload the sample message to the server at URL (with EVENTOCC_TOKEN when "
+        "set) and print its id",
+    )
     args = parser.parse_args(argv)
     settings = Settings()
+    if args.upload_to is not None:
+        message = upload_sample(args.upload_to.rstrip("/"), settings)
+        print(f"sample message {message['id']} ({SAMPLE_NAME}) on {args.upload_to}", flush=True)
+        return
     if settings.port and not port_is_free(settings.host, settings.port):
         settings = settings.model_copy(update={"port": 0})  # let the OS pick a free one
     server, thread = start_server(settings)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import signal
@@ -25,7 +26,7 @@ from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.sim.display import Display
 from eventocc.server import demo
-from eventocc.server.__main__ import parse_args, settings_from_args
+from eventocc.server.__main__ import LOG_HANDLER, log_to_stderr, parse_args, settings_from_args
 from eventocc.server.app import create_app
 from eventocc.server.settings import MIB, Settings
 
@@ -201,6 +202,17 @@ def test_cli_options_override_the_environment(
 def test_cli_refuses_bad_settings_with_a_message() -> None:
     with pytest.raises(SystemExit, match=r"(?s)bad settings.*port"):
         settings_from_args(parse_args(["--port", "99999"]))
+
+
+def test_the_server_logs_its_own_info_lines_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reception's "verified" line reaches the server's log (docker compose logs shows it)."""
+    logger = logging.getLogger("eventocc")
+    monkeypatch.setattr(logger, "handlers", [])
+    monkeypatch.setattr(logger, "level", logging.NOTSET)
+    log_to_stderr()
+    log_to_stderr()
+    assert logger.handlers == [LOG_HANDLER]
+    assert logging.getLogger("eventocc.server.api.receivers").isEnabledFor(logging.INFO)
 
 
 def test_demo_serves_the_sample_and_reuses_it(tmp_path: Path) -> None:
