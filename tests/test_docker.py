@@ -24,7 +24,8 @@ ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = ROOT / "docker" / "docker-compose.yml"
 DOCKERFILE = ROOT / "docker" / "Dockerfile"
 BASE_IMAGE = os.environ.get("EVENTOCC_TEST_BASE_IMAGE", "eventocc-base:bookworm")
-"""Base for the test build: made without a registry by the shared docker-engine helper."""
+"""Base for the test build: a local Debian image (EVENTOCC_TEST_BASE_IMAGE), since a test
+machine may reach no registry."""
 
 
 def compose_command() -> list[str] | None:
@@ -150,7 +151,7 @@ def docker_engine_problem() -> str | None:
         return "no docker client or compose CLI on this machine"
     info = subprocess.run(["docker", "info"], capture_output=True, text=True, check=False)
     if info.returncode != 0:
-        return "no Docker engine answers (start one, e.g. with the shared docker-engine helper)"
+        return "no Docker engine answers (start one to run this test)"
     image = subprocess.run(
         ["docker", "image", "inspect", BASE_IMAGE], capture_output=True, check=False
     )
