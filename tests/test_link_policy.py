@@ -78,7 +78,6 @@ def test_it_never_climbs_on_a_dirty_window() -> None:
         {"passed": 0.8},
         {"ber": 0.006},
         {"margin": 1.1},
-        {"readout": 0.9},
         {"px_at_16": None},
     ):
         end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 3.0, **kwargs)
@@ -102,7 +101,6 @@ def test_losses_step_down_at_once_and_the_failed_setting_waits() -> None:
     [
         ({"ber": 0.02}, "BER"),
         ({"margin": 0.8}, "receiver behind"),
-        ({"readout": 1.05}, "readout full"),
         ({"read": False}, "no frame read"),
     ],
 )
@@ -124,10 +122,13 @@ def test_a_camera_moving_away_is_followed_down_by_its_pixels() -> None:
     assert end.cells < 48
 
 
-def test_a_faster_display_offers_its_rate() -> None:
-    policy = LinkPolicy(display_hz=120.0)
-    end, _, _ = run(policy, start_choice(120.0), 3.0, px_at_16=30.0)
+def test_a_faster_display_offers_its_rate_unless_the_readout_is_full() -> None:
+    end, _, _ = run(LinkPolicy(display_hz=120.0), start_choice(120.0), 3.0, px_at_16=30.0)
     assert end.hold == 1
+    end, _, _ = run(
+        LinkPolicy(display_hz=120.0), start_choice(120.0), 3.0, px_at_16=30.0, readout=0.95
+    )
+    assert end.hold == 2 and end.cells > 16
 
 
 def test_bad_settings_are_refused() -> None:
