@@ -27,8 +27,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import cache
 
+from eventocc.occ.frame_codec import FrameCodec
 from eventocc.occ.marker import MarkerGeometry
+from eventocc.occ.packing import SYMBOL_SIZE, symbols_per_frame
 from eventocc.occ.profiles import get_profile
 
 CELLS_LADDER = (16, 20, 24, 32, 40, 48, 56, 64, 72, 80, 96, 112, 128)
@@ -62,13 +65,21 @@ class LinkChoice:
     def frame_hz(self, display_hz: float) -> float:
         return display_hz / self.hold
 
-    def raw_bps(self, display_hz: float) -> float:
-        """Cell bits per second on screen (before framing and codes)."""
+    def payload_bps(self, display_hz: float) -> float:
+        """Fountain-symbol bits per second the settings carry (packed frames), what the
+        controller ranks settings by: the header, CRC and parity take a larger share of a
+        small frame, so cells alone misrank them (``fast`` N = 24 sends more cells than
+        ``robust`` N = 32, and fewer symbols)."""
         share = get_profile(self.profile).data_share
-        return self.cells**2 * share * self.frame_hz(display_hz)
+        return 8 * _packed_bytes(self.profile, self.cells) * share * self.frame_hz(display_hz)
 
     def __str__(self) -> str:
         return f"{self.profile} N = {self.cells}" + (f" held {self.hold}x" if self.hold > 1 else "")
+
+
+@cache
+def _packed_bytes(profile: str, cells: int) -> int:
+    return SYMBOL_SIZE * symbols_per_frame(FrameCodec(get_profile(profile), cells).symbol_size)
 
 
 def start_choice(display_hz: float) -> LinkChoice:
@@ -172,8 +183,10 @@ def _peak(samples: list[FrameSample], name: str) -> float | None:
 class PolicyConfig:
     min_px: dict[str, float] = field(default_factory=lambda: {"robust": 6.0, "fast": 7.0})
     """Pixels per cell each profile needs (the EVK4's, ``bench.realistic``)."""
-    up_margin: float = 1.1
-    """Predicted pixels per cell kept this far above ``min_px`` when stepping up."""
+    up_margin: float = 1.03
+    """Predicted pixels per cell kept this far above ``min_px`` when stepping up (little:
+    a step that fails costs one step back and a backoff, a margin held for ever costs
+    goodput)."""
     settle_s: float = 0.25
     """After a change, time before any loss counts: the receiver rebuilds and locks again."""
     judge_s: float = 0.4
@@ -203,7 +216,7 @@ class PolicyConfig:
     """Receiver's real-time margin: below 1 it falls behind the camera."""
     max_flow_up: float = 1.5
     """px/ms above which it does not step up (a camera swinging that fast loses frames)."""
-    max_cells_factor: float = 2.0
+    max_cells_factor: float = 3.0
     """A step up at most multiplies the cells by this."""
     backoff_s: float = 5.0
     """Settings that failed are not tried again for this long, doubled at each failure."""
@@ -315,8 +328,10 @@ class LinkPolicy:
                 fit = self._largest_fit(current, px, profile, hold, margin, now_s)
                 if fit is not None:
                     options.append(fit)
-        best = max(options, key=lambda o: o.raw_bps(self.display_hz), default=None)
-        if best is None or best.raw_bps(self.display_hz) <= current.raw_bps(self.display_hz):
+        best = max(options, key=lambda o: o.payload_bps(self.display_hz), default=None)
+        if best is None or best.payload_bps(self.display_hz) <= current.payload_bps(
+            self.display_hz
+        ):
             need = self.config.min_px[current.profile]
             return Decision(current, self._top_reason(current, px, need), False)
         return Decision(best, f"up from {current}: {px:.1f} px per cell, clean window", True)

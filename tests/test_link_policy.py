@@ -7,6 +7,7 @@ import math
 import pytest
 
 from eventocc.occ.link_policy import (
+    CELLS_LADDER,
     FrameSample,
     LinkChoice,
     LinkMeter,
@@ -66,11 +67,12 @@ def test_a_near_camera_climbs_to_what_its_pixels_allow_and_stays() -> None:
     policy = LinkPolicy()
     end, reasons, _ = run(policy, start_choice(60.0), 6.0, px_at_16=20.0)
     assert reasons and all(r.startswith("up") for r, _ in reasons)
-    # fast needs 7 px, 10% margin: the largest N with px >= 7.7 at 20 px for N = 16.
+    # fast needs 7 px and the margin: the largest N whose pixels per cell still allow it.
+    need = policy.config.min_px["fast"] * policy.config.up_margin
     assert end.profile == "fast"
-    assert px_at(20.0, 16, end.cells) >= 7.7
-    bigger = [n for n in (40, 48, 56) if n > end.cells]
-    assert bigger and px_at(20.0, 16, bigger[0]) < 7.7
+    assert px_at(20.0, 16, end.cells) >= need
+    bigger = [n for n in CELLS_LADDER if n > end.cells]
+    assert bigger and px_at(20.0, 16, bigger[0]) < need
 
 
 def test_it_never_climbs_on_a_dirty_window() -> None:
@@ -129,6 +131,13 @@ def test_a_faster_display_offers_its_rate_unless_the_readout_is_full() -> None:
         LinkPolicy(display_hz=120.0), start_choice(120.0), 3.0, px_at_16=30.0, readout=0.95
     )
     assert end.hold == 2 and end.cells > 16
+
+
+def test_settings_are_ranked_by_the_symbols_they_carry() -> None:
+    # fast N = 24 shows more cells a second than robust N = 32, but carries fewer symbols.
+    fast24, robust32 = LinkChoice("fast", 24), LinkChoice("robust", 32)
+    assert fast24.cells**2 * 31 / 32 > robust32.cells**2 / 2
+    assert robust32.payload_bps(60.0) > fast24.payload_bps(60.0)
 
 
 def test_bad_settings_are_refused() -> None:
