@@ -70,7 +70,7 @@ class LinkMode:
         self.mode, self.pinned = mode, pinned
         self.loops.clear()
         if mode == "auto":
-            self._change(
+            self.choose(
                 start_choice(self.display_hz), "auto mode: start where any camera reads", now_s
             )
         else:
@@ -142,10 +142,11 @@ class LinkMode:
         if loop.proposal == self.choice:
             self.reason = loop.reason
             return False
-        self._change(loop.proposal, loop.reason, now_s)
+        self.choose(loop.proposal, loop.reason, now_s)
         return True
 
-    def _change(self, choice: LinkChoice, reason: str, now_s: float) -> None:
+    def choose(self, choice: LinkChoice, reason: str, now_s: float) -> None:
+        """Serve ``choice``: every controller judges it afresh from now."""
         self.choice, self.reason, self.changed_s = choice, reason, now_s
         for loop in self.loops.values():
             loop.meter = self._meter(now_s)
