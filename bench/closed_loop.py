@@ -209,11 +209,23 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--motions", nargs="+", default=MOTIONS, choices=MOTIONS)
     parser.add_argument("--out", type=Path, default=DOCS)
     parser.add_argument("--no-write", action="store_true", help="print only; leave docs alone")
+    parser.add_argument(
+        "--resume", action="store_true", help="keep the scenes the results file already holds"
+    )
     args = parser.parse_args(argv)
+    results = args.out / "results" / "closed_loop.json"
     fixed: list[FixedPoint] = []
     auto: list[AutoRun] = []
+    if args.resume and results.exists():
+        kept = json.loads(results.read_text())
+        fixed = [FixedPoint(**f) for f in kept["fixed"]]
+        auto = [
+            AutoRun(**{**a, "segments": [tuple(s) for s in a["segments"]]}) for a in kept["auto"]
+        ]
     for distance in args.distances:
         for motion in args.motions:
+            if any((a.distance_m, a.motion) == (distance, motion) for a in auto):
+                continue
             loop = loop_scene(distance, motion)
             mine = []
             for choice in sweep_choices(loop):
@@ -234,16 +246,13 @@ def main(argv: list[str] | None = None) -> None:
                 f"{' -> '.join(s for _, s, _ in a.segments)} ({a.wall_s:.0f} s)",
                 flush=True,
             )
+            if not args.no_write:  # each scene as it is done: a long run may be resumed
+                results.parent.mkdir(parents=True, exist_ok=True)
+                scenes = {"fixed": [asdict(f) for f in fixed], "auto": [asdict(a) for a in auto]}
+                results.write_text(json.dumps(scenes, indent=1))
     if args.no_write:
         print(report(fixed, auto))
         return
-    results = args.out / "results" / "closed_loop.json"
-    results.parent.mkdir(parents=True, exist_ok=True)
-    results.write_text(
-        json.dumps(
-            {"fixed": [asdict(f) for f in fixed], "auto": [asdict(a) for a in auto]}, indent=1
-        )
-    )
     write_section(
         "closed_loop",
         "Closed loop: the transmitter's auto mode against the best fixed settings",

@@ -38,6 +38,7 @@ from eventocc.receiver.sim import (
     StaticMotion,
     simulate,
 )
+from eventocc.receiver.sim.sensor import PRESETS as SENSOR_PRESETS
 
 CHUNK_US = 5_000
 DECIDE_EVERY_US = 50_000
@@ -78,8 +79,15 @@ class LoopScene:
         geo = MarkerGeometry(cells)
         return self.camera.K[0, 0] * self.screen_m / geo.side / self.distance_at(t_s)
 
+    @property
+    def sensor_preset(self) -> str:
+        """The preset's variant for a moving camera where it has one (``evk4-moving``: the
+        simulator's moving renderer has no photoreceptor low-pass)."""
+        moving = f"{self.preset}-moving"
+        return moving if self.handheld and moving in SENSOR_PRESETS else self.preset
+
     def readout_events_per_s(self) -> float | None:
-        sensor = SensorModel.preset(self.preset)
+        sensor = SensorModel.preset(self.sensor_preset)
         caps = [c for c in (sensor.readout_hz, sensor.erc_hz, sensor.link_hz) if c]
         return min(caps) if caps else None
 
@@ -98,8 +106,8 @@ class LoopScene:
             camera=self.camera,
             motion=motion,
             display=Display(refresh_hz=self.display_hz / hold),
-            sensor=SensorModel.preset(self.preset),
-            optics=Optics.preset(self.preset),
+            sensor=SensorModel.preset(self.sensor_preset),
+            optics=Optics.preset(self.sensor_preset),
             time_base_us=t_us,
             start_refresh=start_refresh,
             seed=self.seed,
