@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from eventocc.occ.link_policy import LinkChoice, px_at, start_choice
 from eventocc.occ.report import FrameStats, Hello
 from eventocc.server.app import create_app
-from eventocc.server.link_mode import LinkMode
+from eventocc.server.link_mode import LIVE_POLICY, LinkMode
 from eventocc.server.settings import Settings
 
 
@@ -75,6 +75,32 @@ def test_a_pinned_receiver_sets_the_pace_and_a_silent_one_does_not_hold_it_down(
     unpinned.on_frame("blind", frame(unpinned.choice, 24.0, passed=False), t)
     feed(unpinned, 3.0, {"near": 24.0}, t)
     assert unpinned.served == "near"
+
+
+def test_a_receiver_that_hears_of_a_change_late_is_judged_from_its_first_frame() -> None:
+    """The virtual camera looks at the page's status once a second, then locks again: frames
+    of new settings start a second or more after a change, which is not a loss; the clean
+    window is counted from the first of them."""
+    mode = LinkMode()
+    mode.set_mode("auto", None, 0.0)
+    mode.on_frame("late", frame(LinkChoice("fast", 64), 24.0), 0.0)  # the settings before
+    t = feed(mode, 1.2, {})
+    feed(mode, 2.5, {"late": 24.0}, t)
+    # Judged over the time since the change, 1.2 s of it silent, the window would not pass
+    # 85% of the frames sent before 8 s.
+    assert mode.choice.cells > 16, mode.reason
+
+
+def test_a_receiver_that_never_reads_the_new_settings_steps_them_down() -> None:
+    mode = LinkMode()
+    mode.set_mode("auto", None, 0.0)
+    t = feed(mode, 5.0, {"rx": 24.0})
+    climbed = mode.choice
+    assert climbed.cells > 16
+    # From now on it reads nothing of what is sent; a report of the old settings comes late.
+    mode.on_frame("rx", frame(start_choice(60.0), 24.0), t + 0.1)
+    mode.decide(t + LIVE_POLICY.settle_s + LIVE_POLICY.lost_s)
+    assert mode.choice.cells < climbed.cells and "no frame read" in mode.reason
 
 
 def test_reports_of_the_settings_the_screen_left_are_ignored() -> None:
