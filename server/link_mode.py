@@ -12,7 +12,7 @@ The page learns the choice in the answer to its status report (``POST
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from eventocc.occ.link_policy import (
@@ -20,6 +20,7 @@ from eventocc.occ.link_policy import (
     LinkChoice,
     LinkMeter,
     LinkPolicy,
+    LinkWindow,
     PolicyConfig,
     start_choice,
 )
@@ -44,10 +45,14 @@ class ReceiverLoop:
     last_passed_s: float | None = None
     proposal: LinkChoice | None = None
     reason: str = "no report yet"
+    source_speed: float | None = None
+    """Share of real time the receiver's source delivers (its health report): a virtual
+    camera simulating below real time skips frames that the link did not lose."""
 
 
 @dataclass
 class LinkMode:
+    config: PolicyConfig = LIVE_POLICY
     mode: str = "fixed"
     pinned: str | None = None
     """Public id of the receiver the choice follows (None: the weakest verified one)."""
@@ -80,6 +85,10 @@ class LinkMode:
         """The page's display rate, from its measured frame rate and the frames' hold."""
         self.display_hz = frame_hz * hold
 
+    def on_health(self, receiver: str, source_speed: float | None) -> None:
+        if (loop := self.loops.get(receiver)) is not None:
+            loop.source_speed = source_speed
+
     def forget(self, receiver: str) -> None:
         self.loops.pop(receiver, None)
 
@@ -89,7 +98,7 @@ class LinkMode:
             return False
         loop = self.loops.get(receiver)
         if loop is None:
-            policy = LinkPolicy(self.display_hz, LIVE_POLICY)
+            policy = LinkPolicy(self.display_hz, self.config)
             loop = self.loops[receiver] = ReceiverLoop(policy, self._meter(now_s))
         if (report.profile, report.cells) != (self.choice.profile, self.choice.cells):
             return False  # read as other settings: the screen's last, not these
@@ -122,8 +131,8 @@ class LinkMode:
     def decide(self, now_s: float) -> bool:
         """Every receiver's controller proposes; serve the pinned or weakest verified one."""
         for loop in self.loops.values():
-            window = loop.meter.window(now_s)
-            recent = loop.meter.window(now_s, LIVE_POLICY.loss_window_s)
+            window = self._seen(loop, loop.meter.window(now_s))
+            recent = self._seen(loop, loop.meter.window(now_s, self.config.loss_window_s))
             decision = loop.policy.decide(self.choice, window, recent, now_s)
             loop.proposal, loop.reason = decision.choice, decision.reason
         candidates = {
@@ -150,6 +159,16 @@ class LinkMode:
             return False
         self.choose(loop.proposal, loop.reason, now_s)
         return True
+
+    @staticmethod
+    def _seen(loop: ReceiverLoop, window: LinkWindow) -> LinkWindow:
+        """The frames the source showed the receiver, of those the screen sent: a source that
+        skips ahead (a simulation below real time) hides frames the link did not lose. A
+        receiver that itself falls behind shows in its real-time margin instead."""
+        speed = loop.source_speed
+        if speed is None or not 0 < speed < 1:
+            return window
+        return replace(window, expected=window.expected * speed)
 
     def choose(self, choice: LinkChoice, reason: str, now_s: float) -> None:
         """Serve ``choice``: every controller judges it afresh from now."""
