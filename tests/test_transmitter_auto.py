@@ -119,3 +119,37 @@ def test_the_page_follows_the_servers_choice_without_restarting_the_message(
     assert get(base_url, "/api/transmitter/mode")["mode"] == "fixed"
     assert not page.is_disabled("#cells")
     page.close()
+
+
+def test_a_held_frame_stays_up_for_its_refreshes_and_the_rate_reported_is_the_frames(
+    served, browser
+) -> None:
+    base_url, app = served
+    request = urllib.request.Request(
+        f"{base_url}/api/messages?name=held.txt&profile=robust&cells=16",
+        data=MESSAGE[::-1],
+        headers={"Content-Type": "application/octet-stream"},
+        method="POST",
+    )
+    with urllib.request.urlopen(request) as response:
+        message = json.load(response)
+    page = browser.new_page(viewport=VIEWPORT, device_scale_factor=1)
+    page.goto(f"{base_url}/transmitter?id={message['id']}&cell_px={CELL_PX}&mode=auto")
+    page.click("#acknowledge")
+    page.wait_for_function("!document.querySelector('#play').disabled")
+    page.click("#play")
+    wait_for_status(base_url, lambda s: s["packed"] and s["frame_index"] > 10)
+    app.state.live.link.choose(LinkChoice("robust", 16, hold=2), "held", time.monotonic())
+    held = wait_for_status(base_url, lambda s: s["hold"] == 2 and s["frame_index"] > 30)
+    display_hz = page.evaluate("window.eventocc.refreshHz")
+    assert held["refresh_hz"] == pytest.approx(display_hz / 2, rel=0.05)
+    # Each frame drawn once, and held: frames advance at half the refresh rate.
+    t0, k0 = time.monotonic(), page.evaluate("window.eventocc.frameIndex")
+    page.wait_for_timeout(1000)
+    frames_per_s = (page.evaluate("window.eventocc.frameIndex") - k0) / (time.monotonic() - t0)
+    assert frames_per_s == pytest.approx(display_hz / 2, rel=0.2)
+    drawn = page.evaluate("window.eventocc.drawn")
+    assert drawn[-20:] == list(range(drawn[-20], drawn[-20] + 20))
+    page.select_option("#mode", "fixed")
+    page.wait_for_function("window.eventocc.link && window.eventocc.link.mode === 'fixed'")
+    page.close()

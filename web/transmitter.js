@@ -309,9 +309,15 @@ function sameChoice(choice) {
     && segment.hold === choice.hold;
 }
 
+// Answers may come back out of order (a status report and a mode change in flight at once):
+// only the latest request's answer counts.
+let linkAsked = 0;
+let linkApplied = 0;
+
 /** Take the server's word on the mode: in auto, start a segment of its choice if it differs. */
-function applyLink(link) {
-  if (!link) return;
+function applyLink(link, asked) {
+  if (!link || asked < linkApplied) return;
+  linkApplied = asked;
   eventocc.link = link;
   $("mode").value = link.mode;
   document.body.classList.toggle("auto", link.mode === "auto");
@@ -351,13 +357,14 @@ function startSegment(choice) {
 
 async function setMode(mode) {
   settings.mode = mode;
+  const asked = ++linkAsked;
   try {
     const response = await api("/api/transmitter/mode", {
       method: "PUT",
       headers: { "Content-Type": "application/json" },
       body: JSON.stringify({ mode }),
     });
-    applyLink(await response.json());
+    applyLink(await response.json(), asked);
     showError("");
   } catch (error) {
     showError(`mode: ${error.message}`);
@@ -398,6 +405,7 @@ async function reportStatus() {
     stalls: eventocc.stalls,
     user_agent: navigator.userAgent.slice(0, 512),
   };
+  const asked = ++linkAsked;
   try {
     const response = await api("/api/transmitter/status", {
       method: "POST",
@@ -405,7 +413,7 @@ async function reportStatus() {
       headers: { "Content-Type": "application/json" },
       body: JSON.stringify(report),
     });
-    applyLink((await response.json()).link);
+    applyLink((await response.json()).link, asked);
   } catch {
     // The display must go on even when the server is briefly unreachable.
   }
@@ -547,7 +555,10 @@ async function main() {
   settings.cells ??= chosen?.cells ?? default_cells;
   chooseMessage(chosen, keepOptions);
   if (settings.mode) await setMode(settings.mode);
-  else applyLink(await (await api("/api/transmitter/mode")).json());
+  else {
+    const asked = ++linkAsked;
+    applyLink(await (await api("/api/transmitter/mode")).json(), asked);
+  }
   statusLoop();
   requestAnimationFrame(onRefresh);
 }
