@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from bench.loop_sim import LinkRun, LoopScene, random_message, run_link
-from bench.report import write_section
+from bench.report import BENCHMARKS_MD, REVISION, write_section
 from eventocc.occ.link_policy import AUTO_PROFILES, CELLS_LADDER, LinkChoice, LinkPolicy
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
@@ -138,7 +138,7 @@ def _k(bps: float) -> str:
     return f"{bps / 1e3:.1f}"
 
 
-def report(fixed: list[FixedPoint], auto: list[AutoRun]) -> str:
+def report(fixed: list[FixedPoint], auto: list[AutoRun], revisions: dict[str, str]) -> str:
     lines = [
         "The paper's camera (1280x720, `evk4` sensor and lens, 250 lux) watching a 60 Hz "
         "screen on which the transmitter page fits the marker to 0.36 m, whatever its N; "
@@ -198,9 +198,30 @@ def report(fixed: list[FixedPoint], auto: list[AutoRun]) -> str:
             f"| {f.distance_m:g} m | {f.motion} | {f.profile} | {f.cells} | {f.px_per_cell:g} | "
             f"{_k(f.goodput_bps)} |"
         )
-    wall = sum(f.wall_s for f in fixed) + sum(a.wall_s for a in auto)
-    lines += ["", f"Wall time: {wall / 60:.0f} min on one job."]
+    wall_fixed, wall_auto = sum(f.wall_s for f in fixed), sum(a.wall_s for a in auto)
+    lines += [
+        "",
+        f"Wall time on one job, the machine shared: the sweep {wall_fixed / 60:.0f} min, the "
+        f"auto runs {wall_auto / 60:.0f} min.",
+    ]
+    sweep, auto_rev = (revisions[k].removeprefix(", ") for k in ("sweep", "auto"))
+    if sweep != auto_rev:
+        lines.append(
+            f"The fixed sweep ran at {sweep}; the auto runs (`--auto-only`, after a change to "
+            f"the controller alone) at {auto_rev}."
+        )
     return "\n".join(lines)
+
+
+def _section_revision() -> str:
+    """The commit the present section names: the run that wrote the results file."""
+    from bench.stale import sections
+
+    for section in sections(BENCHMARKS_MD.read_text()):
+        if section.name == "closed_loop" and section.commit:
+            dirty = " with uncommitted code changes" if section.dirty else " (clean)"
+            return f", commit {section.commit}{dirty}"
+    return REVISION
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -212,23 +233,34 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--resume", action="store_true", help="keep the scenes the results file already holds"
     )
+    parser.add_argument(
+        "--auto-only",
+        action="store_true",
+        help="run auto again against the fixed sweep the results file holds (a new controller "
+        "changes nothing the sweep measured)",
+    )
     args = parser.parse_args(argv)
     results = args.out / "results" / "closed_loop.json"
     fixed: list[FixedPoint] = []
     auto: list[AutoRun] = []
-    if args.resume and results.exists():
+    revisions = {"sweep": REVISION, "auto": REVISION}
+    if (args.resume or args.auto_only) and results.exists():
         kept = json.loads(results.read_text())
         fixed = [FixedPoint(**f) for f in kept["fixed"]]
-        auto = [
-            AutoRun(**{**a, "segments": [tuple(s) for s in a["segments"]]}) for a in kept["auto"]
-        ]
+        revisions["sweep"] = kept.get("revisions", {}).get("sweep") or _section_revision()
+        if not args.auto_only:
+            revisions["auto"] = kept.get("revisions", revisions)["auto"]
+            auto = [
+                AutoRun(**{**a, "segments": [tuple(s) for s in a["segments"]]})
+                for a in kept["auto"]
+            ]
     for distance in args.distances:
         for motion in args.motions:
             if any((a.distance_m, a.motion) == (distance, motion) for a in auto):
                 continue
             loop = loop_scene(distance, motion)
-            mine = []
-            for choice in sweep_choices(loop):
+            mine = [f for f in fixed if (f.distance_m, f.motion) == (distance, motion)]
+            for choice in sweep_choices(loop) if not mine else []:
                 mine.append(run_fixed(distance, motion, choice))
                 p = mine[-1]
                 print(
@@ -236,7 +268,7 @@ def main(argv: list[str] | None = None) -> None:
                     f"{_k(p.goodput_bps)} kbit/s ({p.wall_s:.0f} s)",
                     flush=True,
                 )
-            fixed += mine
+                fixed.append(p)
             best = max(p.goodput_bps for p in mine)
             auto.append(run_auto(distance, motion, best))
             a = auto[-1]
@@ -248,16 +280,20 @@ def main(argv: list[str] | None = None) -> None:
             )
             if not args.no_write:  # each scene as it is done: a long run may be resumed
                 results.parent.mkdir(parents=True, exist_ok=True)
-                scenes = {"fixed": [asdict(f) for f in fixed], "auto": [asdict(a) for a in auto]}
+                scenes = {
+                    "revisions": revisions,
+                    "fixed": [asdict(f) for f in fixed],
+                    "auto": [asdict(a) for a in auto],
+                }
                 results.write_text(json.dumps(scenes, indent=1))
     if args.no_write:
-        print(report(fixed, auto))
+        print(report(fixed, auto, revisions))
         return
     write_section(
         "closed_loop",
         "Closed loop: the transmitter's auto mode against the best fixed settings",
         "NUMBA_NUM_THREADS=1 nice .venv/bin/python -m bench.closed_loop",
-        report(fixed, auto),
+        report(fixed, auto, revisions),
     )
 
 

@@ -214,8 +214,14 @@ class PolicyConfig:
     margin_up: float = 1.15
     margin_down: float = 1.0
     """Receiver's real-time margin: below 1 it falls behind the camera."""
-    max_flow_up: float = 1.5
-    """px/ms above which it does not step up (a camera swinging that fast loses frames)."""
+    max_flow_up: float = 3.0
+    """px/ms above which it does not step up: past 2 px/ms the receiver's locks go wrong now
+    and then (README, known gaps), and a hand held at 1 px/ms on average swings past 1.5 at
+    times, which must not stop it."""
+    fast_max_flow: float = 0.5
+    """px/ms above which ``fast`` is not chosen: it reads each bit from one transition, which
+    motion smears (``bench.closed_loop``, hand-held at 1 px/ms and 0.6 m: ``fast`` passed a
+    fraction of the frames ``robust`` passed at the same N)."""
     max_cells_factor: float = 3.0
     """A step up at most multiplies the cells by this."""
     backoff_s: float = 5.0
@@ -321,7 +327,8 @@ class LinkPolicy:
         margin = self.config.up_margin
         options = []
         full = window.readout_share is not None and window.readout_share > self.config.readout_up
-        for profile in AUTO_PROFILES if self.config.allow_fast else ("robust",):
+        moving = (window.flow_px_per_ms or 0.0) > self.config.fast_max_flow
+        for profile in AUTO_PROFILES if self.config.allow_fast and not moving else ("robust",):
             for hold in HOLDS:
                 if self.display_hz / hold < 1.0 or (full and hold < current.hold):
                     continue

@@ -29,6 +29,7 @@ def run(
     ber: float = 0.0,
     margin: float | None = 2.0,
     readout: float | None = 0.3,
+    flow: float = 0.1,
     read: bool = True,
 ) -> tuple[LinkChoice, list[tuple[str, LinkChoice]], float]:
     """Feed ``seconds`` of reports at 60 Hz, following each decision as a page would; the
@@ -46,7 +47,7 @@ def run(
             frames += 1
             ok = math.floor(frames * passed) > math.floor((frames - 1) * passed)
             px = None if px_at_16 is None else px_at(px_at_16, 16, current.cells)
-            meter.add(FrameSample(t, ok, ber if ok else None, px, readout, 0.1, margin))
+            meter.add(FrameSample(t, ok, ber if ok else None, px, readout, flow, margin))
         decision = policy.decide(
             current, meter.window(t), meter.window(t, policy.config.loss_window_s), t
         )
@@ -73,6 +74,13 @@ def test_a_near_camera_climbs_to_what_its_pixels_allow_and_stays() -> None:
     assert px_at(20.0, 16, end.cells) >= need
     bigger = [n for n in CELLS_LADDER if n > end.cells]
     assert bigger and px_at(20.0, 16, bigger[0]) < need
+
+
+def test_a_moving_camera_climbs_in_robust_only_and_a_swinging_one_not_at_all() -> None:
+    end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 6.0, px_at_16=20.0, flow=1.8)
+    assert reasons and end.profile == "robust" and end.cells > 16
+    end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 3.0, px_at_16=20.0, flow=3.5)
+    assert end == start_choice(60.0) and not reasons
 
 
 def test_it_never_climbs_on_a_dirty_window() -> None:
