@@ -155,9 +155,14 @@ class LinkMeter:
         span = max(now_s - start, 0.0)
         rate = self.choice.frame_hz(self.display_hz) * get_profile(self.choice.profile).data_share
         bers = [s.ber for s in passed if s.ber is not None]
+        # A receiver rebuilt for new settings locks again first: the frames sent before its
+        # first read are not losses (until it reads one, the whole span is its silence).
+        counted = span
+        if got and last_s is None:
+            counted = max(0.0, min(span, now_s - got[0].t_s + 1 / rate))
         return LinkWindow(
             span_s=span,
-            expected=span * rate,
+            expected=counted * rate,
             read=len(got),
             passed=len(passed),
             ber=sum(bers) / len(bers) if bers else None,
@@ -200,6 +205,11 @@ class PolicyConfig:
     pass_down: float = 0.5
     """...and below which the link steps down at once."""
     ber_up: float = 0.004
+    """BER before FEC above which a step up must keep ``ber_px_margin`` over ``min_px``: near
+    the pixels a profile needs, errors grow as cells shrink; well above them (large cells
+    under a moving camera: 1.1-1.4% at 25 px per cell, hand-held at 0.6 m) they come from
+    elsewhere, and a denser marker does not add many."""
+    ber_px_margin: float = 1.3
     ber_down: float = 0.015
     """BER before FEC above which it steps down: the inner code corrects about 1% of bits
     (``LinkProfile.parity_fraction``), so this is losses about to come."""
@@ -311,8 +321,6 @@ class LinkPolicy:
             return f"judging ({window.span_s:.2f} of {c.judge_s:g} s)"
         if window.pass_share < c.pass_up:
             return f"{window.pass_share:.0%} of frames passed (stepping up needs {c.pass_up:.0%})"
-        if window.ber is not None and window.ber > c.ber_up:
-            return f"BER before FEC {window.ber:.2%} (stepping up needs {c.ber_up:.1%})"
         if window.realtime_margin is not None and window.realtime_margin < c.margin_up:
             return f"receiver real-time margin {window.realtime_margin:.2f}"
         if window.flow_px_per_ms is not None and window.flow_px_per_ms > c.max_flow_up:
@@ -325,6 +333,8 @@ class LinkPolicy:
         px = window.px_per_cell
         assert px is not None
         margin = self.config.up_margin
+        if window.ber is not None and window.ber > self.config.ber_up:
+            margin = max(margin, self.config.ber_px_margin)
         options = []
         full = window.readout_share is not None and window.readout_share > self.config.readout_up
         moving = (window.flow_px_per_ms or 0.0) > self.config.fast_max_flow
@@ -339,6 +349,13 @@ class LinkPolicy:
         if best is None or best.payload_bps(self.display_hz) <= current.payload_bps(
             self.display_hz
         ):
+            if margin > self.config.up_margin:
+                return Decision(
+                    current,
+                    f"BER before FEC {window.ber:.2%}: a step up needs its cells "
+                    f"{margin:g}x the pixels its profile needs",
+                    False,
+                )
             need = self.config.min_px[current.profile]
             return Decision(current, self._top_reason(current, px, need), False)
         return Decision(best, f"up from {current}: {px:.1f} px per cell, clean window", True)

@@ -102,12 +102,6 @@ class LinkMode:
             loop = self.loops[receiver] = ReceiverLoop(policy, self._meter(now_s))
         if (report.profile, report.cells) != (self.choice.profile, self.choice.cells):
             return False  # read as other settings: the screen's last, not these
-        if not loop.meter.samples:
-            # A live receiver hears of a change a second or so late, then locks again: count
-            # the frames expected from its first report of the new settings on. (Until one
-            # comes the window runs from the change, so a receiver that never locks again
-            # still reads as lost.)
-            loop.meter.since_s = now_s - 1 / self.choice.frame_hz(self.display_hz)
         if report.passed:
             loop.last_passed_s = now_s
             if receiver == self.served or self.served is None:

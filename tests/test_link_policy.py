@@ -86,12 +86,33 @@ def test_a_moving_camera_climbs_in_robust_only_and_a_swinging_one_not_at_all() -
 def test_it_never_climbs_on_a_dirty_window() -> None:
     for kwargs in (
         {"passed": 0.8},
-        {"ber": 0.006},
         {"margin": 1.1},
         {"px_at_16": None},
     ):
         end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 3.0, **kwargs)
         assert end == start_choice(60.0) and not reasons, kwargs
+
+
+def test_with_errors_it_climbs_only_where_cells_stay_well_above_what_they_need() -> None:
+    policy = LinkPolicy()
+    end, reasons, _ = run(policy, start_choice(60.0), 6.0, px_at_16=20.0, ber=0.006)
+    assert reasons
+    c = policy.config
+    assert px_at(20.0, 16, end.cells) >= c.min_px[end.profile] * c.ber_px_margin
+    clean, _, _ = run(LinkPolicy(), start_choice(60.0), 6.0, px_at_16=20.0)
+    assert clean.payload_bps(60.0) > end.payload_bps(60.0)
+    # Where no denser marker keeps that margin, it holds and says why.
+    held, reasons, _ = run(LinkPolicy(), start_choice(60.0), 3.0, px_at_16=8.0, ber=0.006)
+    assert held == start_choice(60.0) and not reasons
+
+
+def test_the_frames_before_a_new_lock_are_not_losses() -> None:
+    meter = LinkMeter(LinkChoice("robust", 16), 60.0, 0.0)
+    for i in range(12):  # it locks 0.3 s after the change, then reads every data frame
+        meter.add(FrameSample(0.3 + i / 30, True))
+    window = meter.window(0.3 + 12 / 30)
+    assert window.pass_share == pytest.approx(1.0, abs=0.1)
+    assert window.span_s == pytest.approx(0.7)
 
 
 def test_losses_step_down_at_once_and_the_failed_setting_waits() -> None:
