@@ -30,6 +30,12 @@ MEASURES: dict[str, tuple[str, ...]] = {
     "first_run": ("bench/first_run.py", "Makefile", "pyproject.toml", "occ", "receiver", "server"),
     "realistic": ("bench/realistic.py", *_PIPELINE),
     "scenes": ("bench/scenes", *_PIPELINE),
+    "closed_loop": (
+        "bench/closed_loop.py",
+        "bench/loop_sim.py",
+        *_PIPELINE,
+        "receiver/live/link_quality.py",
+    ),
     "paper_streaming": _EXPERIMENTS,
     "paper_localization": _EXPERIMENTS,
     "paper_comparison": _EXPERIMENTS,

@@ -129,6 +129,9 @@ class FountainEncoder:
         self.message = memoryview(message)
         self.prefix = metadata_prefix(len(message), digest, name)
         self.layout = BlockLayout(len(self.prefix) + len(message), symbol_size, profile)
+        self.overrun = 0
+        """Packets made beyond each block's scheduled ones: a packed frame (``run``) that
+        starts near the end of its block's last run carries them."""
         self._block: tuple[int, list[bytes]] | None = None
 
     def _object_bytes(self, lo: int, hi: int) -> bytes:
@@ -143,12 +146,28 @@ class FountainEncoder:
             k, t = lay.source_symbols(block), lay.symbol_size
             start = block * lay.block_bytes
             data = self._object_bytes(start, start + k * t).ljust(k * t, b"\0")
-            count = lay.profile.passes * lay.run_length(block)
+            count = lay.profile.passes * lay.run_length(block) + self.overrun
             packets = raptorq.Encoder.with_defaults(data, t).get_encoded_packets(count - k)
             if packets[-1][0] != 0 or int.from_bytes(packets[-1][1:4], "big") > 0xFFFF:
                 raise RuntimeError("RaptorQ split a block; lower LinkProfile.block_symbols")
             self._block = (block, packets)
         return self._block[1]
+
+    def run(self, j: int, count: int) -> tuple[int, int, int, bytes]:
+        """(block, source symbols of the block, first esi, bytes) of ``count`` symbols with
+        consecutive esis from the one at stream position ``j``, all of ``j``'s block: what a
+        packed frame carries (``eventocc.occ.packing``). Past the block's run the esis go on
+        into its later passes' repair symbols, which serve a receiver as well as any."""
+        if count > self.overrun:
+            self.overrun, self._block = count, None
+        block, index = self.layout.locate(j)
+        packets = self._packets(block)[index : index + count]
+        return (
+            block,
+            self.layout.source_symbols(block),
+            int.from_bytes(packets[0][1:4], "big"),
+            b"".join(p[4:] for p in packets),
+        )
 
     def symbol(self, j: int) -> tuple[int, int, int, bytes]:
         """(block, source symbols of the block, esi, symbol bytes) of stream symbol ``j``."""

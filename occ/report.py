@@ -87,6 +87,25 @@ class FrameStats(_Model):
     payload_bits: Count = 0
     """Payload bits the frame delivered verified (its CRC passed); 0 for ``paper`` frames,
     which carry no check."""
+    # What the transmitter's auto mode chooses from (``eventocc.occ.link_policy``); receivers
+    # before these fields sent none.
+    profile: str | None = Field(default=None, max_length=16)
+    """The link profile the receiver read the frame as."""
+    cells: Annotated[int, Field(ge=1, le=256)] | None = None
+    """The cell count the receiver read the frame as: a frame of settings the screen has
+    since left tells the controller nothing of the new ones."""
+    passed: bool | None = None
+    """Its Reed-Solomon code and CRC passed (None: ``paper``, no check)."""
+    ber_before_fec: Unit | None = None
+    """Share of its cells the code corrected, for a frame that passed."""
+    px_per_cell: Annotated[float, Field(ge=0.0)] | None = None
+    """A cell's side in pixels at the tracked pose."""
+    readout_share: Annotated[float, Field(ge=0.0)] | None = None
+    """Events per second over what the camera's readout carries (None: not known)."""
+    flow_px_per_ms: Annotated[float, Field(ge=0.0)] | None = None
+    """The marker centre's image speed, from the tracked poses."""
+    realtime_margin: Annotated[float, Field(ge=0.0)] | None = None
+    """Event time the receiver processes per second of its own (below 1: falling behind)."""
 
 
 _SHA256 = r"^[0-9a-f]{64}$"

@@ -39,6 +39,7 @@ from eventocc.occ.fountain import FountainDecoder, FountainEncoder, stream_id_of
 from eventocc.occ.frame_codec import FrameCodec
 from eventocc.occ.framing import FrameHeader
 from eventocc.occ.marker import MarkerGeometry
+from eventocc.occ.packing import FLAG_PACKED, SYMBOL_SIZE, symbols_per_frame
 from eventocc.occ.paper_codec import PaperDecoder, PaperEncoder
 from eventocc.occ.profiles import DEFAULT_PROFILE, LinkProfile, get_profile
 
@@ -93,7 +94,13 @@ class StreamEncoder:
         ring: int = 0,
         preamble: bool = False,
         stream_id: int | None = None,
+        packed: bool = False,
+        symbol_start: int = 0,
     ) -> None:
+        """``packed``: frames of fixed-size symbols (``eventocc.occ.packing``), the first data
+        frame's first symbol at the fountain's stream position ``symbol_start``: a stream that
+        changes its density or profile goes on where the last one stopped, sending the same
+        message's symbols (framed profiles only)."""
         self.profile: LinkProfile = get_profile(profile)
         self.geometry = MarkerGeometry(cells, ring)
         message = bytes(message)
@@ -106,12 +113,20 @@ class StreamEncoder:
             raise ValueError(f"stream_id must be 0..{MAX_STREAM_ID}, got {stream_id}")
         self.stream_id = stream_id
         self.preamble_length = PREAMBLE_BLANK + PREAMBLE_BLINK if preamble else 0
+        if packed and not self.profile.framed:
+            raise ValueError(f"the {self.profile.name} profile has no fountain symbols to pack")
+        if symbol_start < 0:
+            raise ValueError(f"symbol_start must be >= 0, got {symbol_start}")
+        self.packed, self.symbol_start = packed, symbol_start
+        self.symbols_per_frame = 1
+        """Fountain symbols per data frame (more than one only when ``packed``)."""
         if self.profile.framed:
             self._codec = FrameCodec(self.profile, cells)
-            self._fountain = FountainEncoder(
-                message, digest, name, self._codec.symbol_size, self.profile
-            )
-            self.symbols = self._fountain.layout.cycle
+            size = SYMBOL_SIZE if packed else self._codec.symbol_size
+            self._fountain = FountainEncoder(message, digest, name, size, self.profile)
+            if packed:
+                self.symbols_per_frame = symbols_per_frame(self._codec.symbol_size)
+            self.symbols = math.ceil(self._fountain.layout.cycle / self.symbols_per_frame)
         else:
             self._paper = PaperEncoder(message, cells)
             self.symbols = self._paper.layout.frames
@@ -155,7 +170,12 @@ class StreamEncoder:
 
     def _payload(self, j: int) -> np.ndarray:
         if self._payload_cache is None or self._payload_cache[0] != j:
-            if self.profile.framed:
+            if self.packed:
+                m = self.symbols_per_frame
+                block, k, esi, run = self._fountain.run(self.symbol_start + j * m, m)
+                header = FrameHeader(self.stream_id, block, k, esi, FLAG_PACKED)
+                bits = self._codec.encode(header, run.ljust(self._codec.symbol_size, b"\0"))
+            elif self.profile.framed:
                 block, k, esi, symbol = self._fountain.symbol(j)
                 header = FrameHeader(self.stream_id, block, k, esi)
                 bits = self._codec.encode(header, symbol)
@@ -193,6 +213,13 @@ class StreamEncoder:
             state = state ^ self._payload(self._symbol_index(s))
         self._state_cache = (slot, state)
         return state
+
+    def symbol_end(self, refreshes: int) -> int:
+        """The stream position a packed stream that changes its settings after showing
+        ``refreshes`` refreshes of this one goes on from: at or past every symbol those
+        refreshes carried (a few unsent ones skipped cost nothing: the fountain needs any
+        symbols, not these)."""
+        return self.symbol_start + refreshes * self.symbols_per_frame
 
     def frames(self, start: int, count: int) -> np.ndarray:
         """(count, side, side) bool: refreshes ``start .. start + count - 1``."""
@@ -283,20 +310,42 @@ class StreamDecoder:
         if frame is None:
             return []
         header, symbol = frame
+        size = self._codec.symbol_size
+        if header.flags & FLAG_PACKED:
+            size = SYMBOL_SIZE
+            symbol = symbol[: symbols_per_frame(len(symbol)) * SYMBOL_SIZE]
         self.verified_bits += 8 * len(symbol)
         if header.stream_id in self._delivered:
             return []
         stream = self._streams.get(header.stream_id)
-        if stream is None:
-            stream = self._streams[header.stream_id] = FountainDecoder(
-                self._codec.symbol_size, self.profile
-            )
-        done = stream.add(header.block, header.block_symbols, header.esi, symbol)
+        if stream is None or stream.symbol_size != size:
+            # A stream sent at another density unpacked, or packed after unpacked frames: the
+            # symbols differ in size, so the frames now on screen start over.
+            stream = self._streams[header.stream_id] = FountainDecoder(size, self.profile)
+        done = None
+        for r in range(len(symbol) // size):
+            piece = symbol[r * size : (r + 1) * size]
+            done = stream.add(header.block, header.block_symbols, header.esi + r, piece)
+            if done is not None:
+                break
         if done is None:
             return []
         del self._streams[header.stream_id]
         meta, data = done
         return self._received(meta.name, data, header.stream_id, meta.sha256)
+
+    def adopt(self, older: StreamDecoder) -> None:
+        """Take over what ``older`` collected, as a receiver rebuilt for new link settings
+        must: the messages it delivered stay delivered, and the symbols it holds of packed
+        streams, which are the same whatever the density and framed profile
+        (``eventocc.occ.packing``), go on counting. Symbols of unpacked streams fit only
+        their own density and are dropped."""
+        if not (self.profile.framed and older.profile.framed):
+            return
+        self._delivered |= older._delivered
+        for sid, stream in older._streams.items():
+            if stream.symbol_size == SYMBOL_SIZE and sid not in self._streams:
+                self._streams[sid] = stream
 
     @property
     def corrected(self) -> np.ndarray | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from dataclasses import replace
 from html import escape
 from importlib import resources
 from pathlib import Path
@@ -21,6 +22,7 @@ from eventocc.server.api.origins import OriginCheck
 from eventocc.server.api.state import LiveState
 from eventocc.server.api.uploads import UploadBudget
 from eventocc.server.hub import Hub
+from eventocc.server.link_mode import LIVE_POLICY, LinkMode
 from eventocc.server.receptions import ReceptionStore
 from eventocc.server.settings import Settings
 from eventocc.server.store import MessageStore
@@ -37,8 +39,10 @@ more server CPU with 100 dashboards (bench/live.py) to save little bandwidth."""
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     """The live state for the app's lifetime; the receptions' database closes with it."""
-    store = app.state.store
-    app.state.live = LiveState(Hub(), ReceptionStore(store.path), store)
+    store, settings = app.state.store, app.state.settings
+    min_px = {"robust": settings.auto_min_px_robust, "fast": settings.auto_min_px_fast}
+    link = LinkMode(config=replace(LIVE_POLICY, min_px=min_px))
+    app.state.live = LiveState(Hub(), ReceptionStore(store.path), store, link=link)
     try:
         yield
     finally:

@@ -35,6 +35,10 @@ class Settings(BaseSettings):
     default_cells: int = Field(16, ge=MIN_CELLS, le=MAX_CELLS)
     encoder_cache_size: int = Field(8, ge=1)
     """Frame encoders kept warm, one per (message, profile, cells) being played."""
+    auto_min_px_robust: float = Field(6.0, gt=0)
+    auto_min_px_fast: float = Field(7.0, gt=0)
+    """Pixels per cell auto mode gives each profile before stepping up to it: the EVK4's
+    (``bench.realistic``); a camera that reads smaller cells can be given less."""
 
     @field_validator("default_profile")
     @classmethod

@@ -20,7 +20,7 @@ from eventocc.occ.report import (
     SurfaceReport,
     TrackingState,
 )
-from eventocc.occ.stream import ReceivedMessage
+from eventocc.occ.stream import ReceivedMessage, StreamDecoder, StreamEncoder
 from eventocc.receiver.events import make_events
 from eventocc.receiver.live.cameras import LiveCamera
 from eventocc.receiver.live.daemon import Daemon, DaemonConfig, LinkFollower, OutputFolder
@@ -368,18 +368,18 @@ def test_daemon_follows_a_new_refresh_rate_but_not_its_wobble(tmp_path, caplog) 
     assert "robust with 16 cells at 144 Hz" in caplog.text
 
 
-def follow(tmp_path, caplog, links: list[LinkSettings], **pinned):
+def follow(tmp_path, caplog, links: list[LinkSettings], build=None, **pinned):
     """Run a daemon whose source reports ``links``, one per chunk; return it, its first
-    pipeline and the link settings of every pipeline built."""
+    pipeline and the link settings of every pipeline built (by ``build``, if given)."""
     builds: list[LinkSettings] = []
 
-    def build(link: LinkSettings) -> ScriptedPipeline:
+    def scripted(link: LinkSettings) -> ScriptedPipeline:
         builds.append(link)
-        return ScriptedPipeline(message_on_chunk=0)
+        return ScriptedPipeline(message_on_chunk=0) if build is None else build(link)
 
     chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(len(links))]
     source = WatchingSource(chunks, links)
-    follower = LinkFollower(build, source, links[0], **pinned)
+    follower = LinkFollower(scripted, source, links[0], **pinned)
     first = follower.pipeline()
     daemon = Daemon(source, first, ListSink(), OutputFolder(tmp_path / "out"), follower=follower)
     with caplog.at_level("INFO", logger="eventocc.receiver.live.daemon"):
@@ -488,3 +488,45 @@ def test_a_long_reason_to_wait_is_cut_to_fit_the_report(tmp_path) -> None:
     daemon.publish_news(None)
     (health,) = sink.of(HealthReport)
     assert health.waiting.startswith("the server says: xxx") and len(health.waiting) <= 300
+
+
+def test_frame_reports_carry_what_auto_mode_chooses_from(tmp_path) -> None:
+    chunks = [chunk(i * 1000, i * 1000 + 999) for i in range(3)]
+    source = WatchingSource(chunks, [ROBUST_16] * 3)
+    source.readout_events_per_s = 400_000.0
+    follower = LinkFollower(lambda link: ScriptedPipeline(message_on_chunk=0), source, ROBUST_16)
+    sink = ListSink()
+    Daemon(
+        source, follower.pipeline(), sink, OutputFolder(tmp_path / "out"), follower=follower
+    ).run()
+    frames = sink.of(FrameStats)
+    assert frames
+    last = frames[-1]
+    assert (last.profile, last.cells, last.px_per_cell) == ("robust", 4, 2.5)
+    assert last.passed is False and last.ber_before_fec is None  # no payload bits verified
+    assert last.readout_share == pytest.approx(last.events_per_s / 400_000.0)
+    assert last.realtime_margin is not None and last.realtime_margin > 0
+
+
+def test_a_rebuilt_receiver_keeps_the_packed_symbols_it_holds(tmp_path, caplog) -> None:
+    """The transmitter's auto mode moves from N = 16 to N = 32 mid-message: the receiver built
+    for N = 32 goes on from what the N = 16 one collected."""
+    message = bytes(range(256)) * 4
+    first = StreamEncoder(message, name="m", cells=16, packed=True)
+    decoders: list[StreamDecoder] = []
+
+    def build(link: LinkSettings) -> ScriptedPipeline:
+        pipeline = ScriptedPipeline(message_on_chunk=0)
+        pipeline.stream = StreamDecoder(profile=link.profile, cells=link.cells)
+        if not decoders:  # the first receiver read half the message's symbols at N = 16
+            for k in range(0, 2 * len(message) // 12, 2):
+                pipeline.stream.push(first.payload_bits(k))
+        decoders.append(pipeline.stream)
+        return pipeline
+
+    links = [ROBUST_16] * 2 + [LinkSettings("robust", 32)] * 2
+    daemon, _, _ = follow(tmp_path, caplog, links, build=build)
+    assert daemon.summary.rebuilds == 1
+    (held_before,) = [p["symbols_held"] for p in decoders[0].progress().values()]
+    (held_after,) = [p["symbols_held"] for p in decoders[1].progress().values()]
+    assert held_before > 0 and held_after == held_before

@@ -20,6 +20,7 @@ const state = {
   poses: [], // {t, p: [x, y, z], q: [x, y, z, w], axis: [x, y, z], verified}, newest last
   arrivals: [], // [ms, lag ms] per pose: its arrival less its event time (another clock)
   cells: null, // the latest read frame's cells report
+  linkMode: null, // the server's transmitter mode and choice (link_mode updates)
   posesThisSecond: 0,
   progress: new Map(), // "receiver:stream_id" -> {report, firstSeen: [ms, held], seen: ms}
   receptions: new Map(), // id -> reception
@@ -104,6 +105,10 @@ const handlers = {
   receivers(u) {
     const ids = u.receivers.map((r) => r.receiver);
     $("receivers").textContent = ids.length ? `receivers: ${ids.join(", ")}` : "no receiver connected";
+  },
+  link_mode(u) {
+    state.linkMode = u;
+    state.dirty.add("adapt");
   },
   transmitter(u) {
     const hz = u.refresh_hz ? `${u.refresh_hz.toFixed(1)} Hz` : "– Hz";
@@ -420,7 +425,47 @@ function formatRate(v, unit) {
   return `${v.toFixed(0)} ${unit}`;
 }
 
+// --- the transmitter's settings (auto mode) --------------------------------------------------
+function drawAdapt() {
+  const u = state.linkMode;
+  if (!u) return;
+  const c = u.choice;
+  $("link-mode").textContent = u.mode + (u.pinned ? `, pinned to ${u.pinned}` : "");
+  $("link-choice").textContent = c
+    ? `${c.profile}, ${c.cells} cells, ${c.frame_hz.toFixed(0)} frames/s` + (c.hold > 1 ? ` (each held ${c.hold} refreshes)` : "")
+      + `, for ${u.since_s.toFixed(0)} s`
+    : "what the page's user set";
+  $("link-reason").textContent = u.reason;
+  $("link-served").textContent = u.served ?? "–";
+  const last = u.history.at(-1);
+  $("link-goodput").textContent = last ? formatRate(last.bps, "bit/s") : "–";
+  drawLinkHistory($("link-history"), u.history);
+}
+
+/** Goodput a second, one bar each, with a tick and the new settings where they changed. */
+function drawLinkHistory(canvas, history) {
+  const ctx = canvas.getContext("2d");
+  const { width: w, height: h } = canvas;
+  ctx.clearRect(0, 0, w, h);
+  if (!history.length) return;
+  const top = Math.max(...history.map((p) => p.bps)) || 1;
+  const step = w / Math.max(history.length, 60);
+  ctx.font = "10px sans-serif";
+  history.forEach((p, i) => {
+    const x = i * step;
+    const bar = (p.bps / top) * (h - 14);
+    ctx.fillStyle = "#5fb3ff";
+    ctx.fillRect(x, h - bar, Math.max(step - 1, 1), bar);
+    if (i === 0 || history[i - 1].settings !== p.settings) {
+      ctx.fillStyle = "#ffb35f";
+      ctx.fillRect(x, 0, 1, h);
+      ctx.fillText(p.settings, x + 2, 10);
+    }
+  });
+}
+
 const painters = {
+  adapt: drawAdapt,
   pose: drawViews,
   messages: drawMessages,
   state: drawState,

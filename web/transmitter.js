@@ -3,8 +3,15 @@
 // Frames come from GET /api/messages/{id}/frames in packed-bit batches, fetched well ahead so
 // the network never holds up the display. If a frame is still missing when its refresh comes,
 // the previous frame stays up and the index does not advance (a "stall"): frames are never
-// skipped. Query options: id, profile, cells, cell_px (0 = fit the screen), capture=N (keep the
-// pixels of the first N frames drawn, for tests, in window.eventocc.captured).
+// skipped. Query options: id, profile, cells, cell_px (0 = fit the screen), mode (fixed or
+// auto), capture=N (keep the pixels of the first N frames drawn, for tests, in
+// window.eventocc.captured).
+//
+// Auto mode: the server chooses profile, cells and how many refreshes each frame is held for,
+// from what the receivers measure, and says so in the answer to every status report. Each
+// choice starts a new segment of packed frames (fixed-size fountain symbols, the same at every
+// density) from the next symbol the last segment did not send, so a receiver keeps what it
+// collected of the message across the change.
 
 const BATCH = 60; // frames per request
 const BUFFER_SECONDS = 3; // keep this much fetched ahead of the display
@@ -13,6 +20,7 @@ const RETRY_AFTER_MS = 2000; // after a failed fetch, instead of retrying on eve
 const METER_WINDOW = 240; // refresh intervals in the running median
 const MISSED_FACTOR = 1.5; // an interval this much over the median missed a refresh
 const STATUS_EVERY_MS = 1000;
+const AUTO_STATUS_EVERY_MS = 250; // auto: the answer carries the server's choice
 const DRAWN_HISTORY = 600;
 
 const $ = (id) => document.getElementById(id);
@@ -23,7 +31,10 @@ const settings = {
   profile: params.get("profile"),
   cells: intParam("cells"),
   cellPx: intParam("cell_px") ?? 0,
+  mode: params.get("mode"), // null: whatever the server holds
 };
+// What is on screen: the user's settings in fixed mode, the server's choice in auto.
+const segment = { packed: false, profile: null, cells: null, hold: 1, symbolStart: 0 };
 const captureLimit = intParam("capture") ?? 0;
 
 // What tests and the status report read: never reassigned, only updated.
@@ -34,6 +45,8 @@ const eventocc = {
   refreshHz: null,
   missedRefreshes: 0,
   stalls: 0,
+  link: null, // the server's last word on the mode: {mode, choice, reason, ...}
+  segments: 0, // auto segments started
   drawn: [], // ring of the last DRAWN_HISTORY frame indices drawn, oldest first
   captured: [], // {frameIndex, x, y, width, height, rgba: Uint8ClampedArray}
   capturedBase64,
@@ -65,8 +78,13 @@ async function api(path, options = {}) {
 
 // --- frames, fetched ahead in batches ----------------------------------------------------
 class FrameBuffer {
-  constructor(id, profile, cells) {
+  constructor(id, profile, cells, packed = false, symbolStart = 0) {
     this.query = new URLSearchParams({ count: BATCH, profile, cells });
+    if (packed) {
+      this.query.set("packed", "true");
+      this.query.set("symbol_start", symbolStart);
+    }
+    this.symbolsPerFrame = null; // from X-Frame-Symbols
     this.path = `/api/messages/${encodeURIComponent(id)}/frames`;
     this.batches = new Map(); // first frame index -> {side, frameBytes, bits}
     this.inFlight = new Set();
@@ -99,6 +117,7 @@ class FrameBuffer {
       const response = await api(`${this.path}?${this.query}`);
       const side = Number(response.headers.get("X-Frame-Side"));
       const frameBytes = Number(response.headers.get("X-Frame-Bytes"));
+      this.symbolsPerFrame = Number(response.headers.get("X-Frame-Symbols")) || 1;
       const bits = new Uint8Array(await response.arrayBuffer());
       this.side = side;
       this.batches.set(start, { side, frameBytes, bits });
@@ -212,6 +231,7 @@ function capturedBase64() {
 const meter = new RefreshMeter();
 let frames = null; // FrameBuffer of the message being sent
 let messages = []; // as listed by the API
+let heldFor = 0; // refreshes the frame on screen has been up (auto may hold each for several)
 
 function onRefresh(now) {
   const missed = meter.tick(now);
@@ -220,14 +240,20 @@ function onRefresh(now) {
   if (eventocc.playing && frames) {
     if (missed) eventocc.missedRefreshes++;
     const bits = frames.get(eventocc.frameIndex);
-    if (bits) {
+    if (bits && heldFor > 0) {
+      heldFor++; // the same frame stays up for this refresh
+    } else if (bits) {
       draw(bits, frames.side);
       if (eventocc.captured.length < captureLimit) capture(eventocc.frameIndex);
       eventocc.drawn.push(eventocc.frameIndex);
       if (eventocc.drawn.length > DRAWN_HISTORY) eventocc.drawn.shift();
-      eventocc.frameIndex++;
+      heldFor = 1;
     } else {
       eventocc.stalls++;
+    }
+    if (heldFor >= segment.hold) {
+      heldFor = 0;
+      eventocc.frameIndex++;
     }
   }
   if (frames) frames.fill(eventocc.frameIndex, aheadFrames());
@@ -260,17 +286,89 @@ function setPlaying(playing) {
 function restartStream() {
   setPlaying(false);
   eventocc.frameIndex = 0;
+  heldFor = 0;
+  Object.assign(segment, {
+    packed: false, profile: settings.profile, cells: settings.cells, hold: 1, symbolStart: 0,
+  });
   frames = settings.id ? new FrameBuffer(settings.id, settings.profile, settings.cells) : null;
   placement = null;
   clearCanvas();
   $("play").disabled = !frames || !eventocc.acknowledged;
   const url = new URL(location.href);
   for (const [key, value] of [["id", settings.id], ["profile", settings.profile],
-    ["cells", settings.cells], ["cell_px", settings.cellPx]]) {
+    ["cells", settings.cells], ["cell_px", settings.cellPx], ["mode", settings.mode]]) {
     if (value === null || value === "") url.searchParams.delete(key);
     else url.searchParams.set(key, value);
   }
   history.replaceState(null, "", url);
+}
+
+// --- auto mode: the server's choice ------------------------------------------------------------
+function sameChoice(choice) {
+  return segment.packed && segment.profile === choice.profile && segment.cells === choice.cells
+    && segment.hold === choice.hold;
+}
+
+// Answers may come back out of order (a status report and a mode change in flight at once):
+// only the latest request's answer counts.
+let linkAsked = 0;
+let linkApplied = 0;
+
+/** Take the server's word on the mode: in auto, start a segment of its choice if it differs. */
+function applyLink(link, asked) {
+  if (!link || asked < linkApplied) return;
+  linkApplied = asked;
+  eventocc.link = link;
+  $("mode").value = link.mode;
+  document.body.classList.toggle("auto", link.mode === "auto");
+  $("auto-reason").hidden = link.mode !== "auto";
+  $("profile").disabled = $("cells").disabled = link.mode === "auto"; // the server chooses
+  $("auto-reason").textContent = link.mode === "auto" && link.choice
+    ? `auto: ${link.choice.profile}, ${link.choice.cells} cells, ${link.choice.frame_hz.toFixed(0)} Hz — ${link.reason}`
+    : "";
+  if (link.mode === "auto" && link.choice && frames && !sameChoice(link.choice)) {
+    startSegment(link.choice);
+  } else if (link.mode === "fixed" && segment.packed) {
+    const playing = eventocc.playing;
+    restartStream(); // back to the user's own settings
+    if (playing) setPlaying(true);
+  }
+}
+
+// A new packed segment goes on from the next symbol the last one did not send: every frame
+// shown carried symbolsPerFrame symbols (a blank frame's share is skipped, which costs
+// nothing: the fountain needs any symbols, not these ones).
+function startSegment(choice) {
+  const symbolStart = segment.packed
+    ? segment.symbolStart + eventocc.frameIndex * (frames.symbolsPerFrame ?? 1)
+    : 0;
+  Object.assign(segment, {
+    packed: true, profile: choice.profile, cells: choice.cells, hold: choice.hold, symbolStart,
+  });
+  frames = new FrameBuffer(settings.id, choice.profile, choice.cells, true, symbolStart);
+  eventocc.frameIndex = 0;
+  eventocc.segments++;
+  heldFor = 0;
+  placement = null;
+  $("profile").value = choice.profile;
+  $("cells").value = choice.cells;
+  setTimeout(reportStatus, 0); // the cameras must hear of it at once
+}
+
+async function setMode(mode) {
+  settings.mode = mode;
+  const asked = ++linkAsked;
+  try {
+    const response = await api("/api/transmitter/mode", {
+      method: "PUT",
+      headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ mode }),
+    });
+    applyLink(await response.json(), asked);
+    showError("");
+  } catch (error) {
+    showError(`mode: ${error.message}`);
+  }
 }
 
 // --- overlay and status report -------------------------------------------------------------
@@ -292,23 +390,30 @@ async function reportStatus() {
   updateOverlay();
   const report = {
     message_id: settings.id,
-    profile: settings.profile,
-    cells: settings.cells,
+    profile: segment.profile ?? settings.profile,
+    cells: segment.cells ?? settings.cells,
     cell_px: placement?.cellPx ?? null,
     playing: eventocc.playing,
     frame_index: eventocc.frameIndex,
-    refresh_hz: eventocc.refreshHz,
+    // The rate frames change at, which receivers are built for; the server multiplies it
+    // back by the hold for the display's own.
+    refresh_hz: eventocc.refreshHz && eventocc.refreshHz / segment.hold,
+    packed: segment.packed,
+    symbol_start: segment.symbolStart,
+    hold: segment.hold,
     missed_refreshes: eventocc.missedRefreshes,
     stalls: eventocc.stalls,
     user_agent: navigator.userAgent.slice(0, 512),
   };
+  const asked = ++linkAsked;
   try {
-    await api("/api/transmitter/status", {
+    const response = await api("/api/transmitter/status", {
       method: "POST",
       keepalive: true, // sent even as the page closes (closing hides it, which pauses it)
       headers: { "Content-Type": "application/json" },
       body: JSON.stringify(report),
     });
+    applyLink((await response.json()).link, asked);
   } catch {
     // The display must go on even when the server is briefly unreachable.
   }
@@ -406,6 +511,7 @@ function bindControls() {
   });
   $("token").addEventListener("change", (e) => sessionStorage.setItem("eventocc-token", e.target.value));
   $("play").addEventListener("click", () => setPlaying(!eventocc.playing));
+  $("mode").addEventListener("change", (e) => setMode(e.target.value));
   $("fullscreen").addEventListener("click", toggleFullscreen);
   $("controls").addEventListener("submit", (e) => e.preventDefault());
 
@@ -448,8 +554,18 @@ async function main() {
   settings.profile ??= chosen?.profile ?? default_profile;
   settings.cells ??= chosen?.cells ?? default_cells;
   chooseMessage(chosen, keepOptions);
-  setInterval(reportStatus, STATUS_EVERY_MS);
+  if (settings.mode) await setMode(settings.mode);
+  else {
+    const asked = ++linkAsked;
+    applyLink(await (await api("/api/transmitter/mode")).json(), asked);
+  }
+  statusLoop();
   requestAnimationFrame(onRefresh);
+}
+
+function statusLoop() {
+  reportStatus();
+  setTimeout(statusLoop, eventocc.link?.mode === "auto" ? AUTO_STATUS_EVERY_MS : STATUS_EVERY_MS);
 }
 
 main().catch((error) => showError(error.message));

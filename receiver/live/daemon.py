@@ -46,6 +46,7 @@ from eventocc.occ.report import (
     SurfaceReport,
     TrackingState,
 )
+from eventocc.receiver.live.link_quality import FlowMeter, MarginMeter, frame_quality
 from eventocc.receiver.live.sources import EventSource
 from eventocc.receiver.pipeline.receiver import (
     FrameOutput,
@@ -277,6 +278,8 @@ class Daemon:
         self._next_news = 0.0
         self._next_cells = 0.0
         self._rate = RateMeter()
+        self._flow = self._flow_meter()
+        self._margin = MarginMeter()
 
     def run(self, stop: threading.Event | None = None) -> DaemonSummary:
         """Process the source until it ends or ``stop`` is set."""
@@ -304,7 +307,12 @@ class Daemon:
         self._rate.add(chunk)
         self.follow_source_waiting()
         self.follow_transmitter()
-        self.handle(self.pipeline.push(chunk))
+        started = time.perf_counter()
+        outputs = self.pipeline.push(chunk)
+        if len(chunk):
+            span_us = int(chunk["t"][-1] - chunk["t"][0])
+            self._margin.timed(max(span_us, 1), time.perf_counter() - started)
+        self.handle(outputs)
         if time.monotonic() >= self._next_news:
             self._next_news = time.monotonic() + 1.0 / self.config.news_hz
             self.output.flush_poses()
@@ -335,7 +343,13 @@ class Daemon:
             return
         self._sending = sending
         if (pipeline := self.follower.follow(sending)) is not None:
+            # The symbols of a message sent packed count whatever the density: the new
+            # receiver goes on collecting where the last one was (``StreamDecoder.adopt``).
+            adopt = getattr(pipeline.stream, "adopt", None)
+            if adopt is not None:
+                adopt(self.pipeline.stream)
             self.pipeline = pipeline
+            self._flow = self._flow_meter()
             self.summary.rebuilds += 1
             self.state = TrackingState.SCANNING
 
@@ -345,6 +359,8 @@ class Daemon:
             if isinstance(out, PoseEstimate):
                 poses.append(out)
                 self.publish_pose(out)
+                if self._flow is not None:
+                    self._flow.add(out)
             elif isinstance(out, FrameOutput):
                 self.summary.frames += 1
                 self.sink.publish(self.frame_stats(out), durable=False)
@@ -395,6 +411,16 @@ class Daemon:
 
     def frame_stats(self, out: FrameOutput) -> FrameStats:
         read = out.read
+        link = self.follower.receiving if self.follower is not None else None
+        checked = link is None or link.profile != "paper"  # paper frames carry no check
+        quality = frame_quality(
+            out,
+            px_per_cell=self.pipeline.cell_px,
+            events_per_s=self._rate.events_per_s,
+            readout_events_per_s=getattr(self.source, "readout_events_per_s", None),
+            flow_px_per_ms=None if self._flow is None else self._flow.px_per_ms,
+            realtime_margin=self._margin.margin,
+        )
         return FrameStats(
             t_us=read.t_us,
             frame_index=max(read.index, 0),
@@ -402,7 +428,23 @@ class Daemon:
             confidence_mean=float(np.clip(np.mean(read.confidence), 0.0, 1.0)),
             events_per_s=self._rate.events_per_s,
             payload_bits=out.payload_bits,
+            profile=None if link is None else link.profile,
+            cells=int(read.bits.shape[0]),
+            passed=quality.passed if checked else None,
+            ber_before_fec=quality.ber_before_fec,
+            px_per_cell=quality.px_per_cell,
+            readout_share=quality.readout_share,
+            flow_px_per_ms=quality.flow_px_per_ms,
+            realtime_margin=quality.realtime_margin,
         )
+
+    def _flow_meter(self) -> FlowMeter | None:
+        """The marker's image speed needs the camera and marker the pipeline is built for
+        (a stand-in pipeline in tests may have neither)."""
+        config = getattr(self.pipeline, "config", None)
+        if config is None:
+            return None
+        return FlowMeter(config.camera, config.marker_size_m)
 
     def publish_cells(self, out: FrameOutput) -> None:
         """The cells of a read frame, ``news_hz`` times a second at most (the dashboard's view

@@ -47,9 +47,18 @@ class Showing:
     refresh_hz: float
     """As the page measured it (``link`` holds it to the whole hertz)."""
     frame_now: int
+    packed: bool = False
+    """The page sends packed frames (its auto mode), this segment's first symbol at stream
+    position ``symbol_start`` (``eventocc.occ.packing``)."""
+    symbol_start: int = 0
 
     def same_stream(self, other: Showing) -> bool:
-        return (self.message_id, self.link) == (other.message_id, other.link)
+        return (self.message_id, self.link, self.packed, self.symbol_start) == (
+            other.message_id,
+            other.link,
+            other.packed,
+            other.symbol_start,
+        )
 
 
 @dataclass(frozen=True)
@@ -69,6 +78,8 @@ class _Status(BaseModel):
     playing: bool = False
     frame_index: int = Field(0, ge=0, le=MAX_FRAME_INDEX)
     refresh_hz: float | None = None
+    packed: bool = False
+    symbol_start: int = Field(0, ge=0, le=MAX_FRAME_INDEX)
     received: AwareDatetime
 
     def showing(self) -> Showing | Idle:
@@ -82,7 +93,7 @@ class _Status(BaseModel):
         hz = self.refresh_hz or 60.0
         link = LinkSettings(self.profile, self.cells, hz)  # raises for what cannot be received
         frame_now = min(self.frame_index + max(0, round(age_s * hz)), MAX_FRAME_INDEX)
-        return Showing(self.message_id, link, hz, frame_now)
+        return Showing(self.message_id, link, hz, frame_now, self.packed, self.symbol_start)
 
 
 class _Listed(BaseModel):

@@ -251,7 +251,14 @@ class VirtualCamera:
             return self._encoder[1]
         name, data = self.server.message(showing.message_id)
         link = showing.link
-        encoder = StreamEncoder(data, name=name, profile=link.profile, cells=link.cells)
+        encoder = StreamEncoder(
+            data,
+            name=name,
+            profile=link.profile,
+            cells=link.cells,
+            packed=showing.packed,
+            symbol_start=showing.symbol_start,
+        )
         self._encoder = (showing, encoder)
         return encoder
 

@@ -16,10 +16,25 @@ from eventocc.server.api.schemas import NOMINAL_REFRESH_HZ, MessagePublic
 from eventocc.server.store import MessageStore, StoredMessage
 
 
-def new_encoder(data: bytes, *, name: str, profile: str, cells: int) -> StreamEncoder:
+def new_encoder(
+    data: bytes,
+    *,
+    name: str,
+    profile: str,
+    cells: int,
+    packed: bool = False,
+    symbol_start: int = 0,
+) -> StreamEncoder:
     """The message's encoder; 422 if the link format refuses this message/profile/cells."""
     try:
-        return StreamEncoder(data, name=name, profile=profile, cells=cells)
+        return StreamEncoder(
+            data,
+            name=name,
+            profile=profile,
+            cells=cells,
+            packed=packed,
+            symbol_start=symbol_start,
+        )
     except ValueError as error:
         raise HTTPException(
             status.HTTP_422_UNPROCESSABLE_CONTENT,
@@ -28,15 +43,30 @@ def new_encoder(data: bytes, *, name: str, profile: str, cells: int) -> StreamEn
 
 
 class EncoderCache:
-    """``get(message, profile, cells)``: the encoder, rebuilt only when it fell out of the LRU."""
+    """``get(message, profile, cells, packed, symbol_start)``: the encoder, rebuilt only when it
+    fell out of the LRU."""
 
     def __init__(self, store: MessageStore, size: int) -> None:
         self._store = store
         self.get = lru_cache(maxsize=size)(self._build)
 
-    def _build(self, message: StoredMessage, profile: str, cells: int) -> StreamEncoder:
+    def _build(
+        self,
+        message: StoredMessage,
+        profile: str,
+        cells: int,
+        packed: bool = False,
+        symbol_start: int = 0,
+    ) -> StreamEncoder:
         data = self._store.content(message)
-        return new_encoder(data, name=message.name, profile=profile, cells=cells)
+        return new_encoder(
+            data,
+            name=message.name,
+            profile=profile,
+            cells=cells,
+            packed=packed,
+            symbol_start=symbol_start,
+        )
 
 
 def link_facts(encoder: StreamEncoder) -> dict:

@@ -5,10 +5,11 @@ from __future__ import annotations
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, HTTPException, Query, Response, status
 
+from eventocc.occ.link_policy import AUTO_PROFILES
 from eventocc.server.api.deps import CellsQuery, EncodersDep, MessageDep
-from eventocc.server.api.schemas import MAX_FRAME_INDEX, ProfileName
+from eventocc.server.api.schemas import MAX_COUNTER, MAX_FRAME_INDEX, ProfileName
 
 router = APIRouter(prefix="/messages", tags=["frames"])
 
@@ -20,7 +21,9 @@ Frames `start .. start+count-1`, each the **full marker cell matrix** (every cel
 exterior rings included) of `side x side` cells, row-major, 1 = white, bits packed MSB first.
 Each frame is padded with zero bits to whole bytes, so the body is
 `count * ceil(side * side / 8)` bytes. Headers: `X-Frame-Side`, `X-Frame-Start`,
-`X-Frame-Count`, `X-Frame-Bytes` (bytes per frame).
+`X-Frame-Count`, `X-Frame-Bytes` (bytes per frame), `X-Frame-Symbols` (fountain symbols per data
+frame; a packed segment that ends after `k` refreshes is followed by one from `symbol_start +
+k * X-Frame-Symbols`).
 In numpy: `np.unpackbits(np.frombuffer(body, np.uint8).reshape(count, -1), axis=1)`,
 then `[:, :side * side].reshape(count, side, side)`.
 """
@@ -46,10 +49,24 @@ def read_frames(
     count: Annotated[int, Query(ge=1, le=MAX_BATCH, description="Frames in the batch.")] = 60,
     profile: Annotated[ProfileName | None, Query(description="Defaults to the message's.")] = None,
     cells: CellsQuery = None,
+    packed: Annotated[
+        bool, Query(description="Fixed-size fountain symbols, as auto mode sends.")
+    ] = False,
+    symbol_start: Annotated[
+        int,
+        Query(ge=0, le=MAX_COUNTER, description="Packed: the first symbol's stream position."),
+    ] = 0,
 ) -> Response:
     """Frames as displayed, one per display refresh (blank frames included)."""
     profile_name = profile.value if profile else message.profile
-    encoder = encoders.get(message, profile_name, cells or message.cells)
+    if packed and profile_name not in AUTO_PROFILES:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"packed frames are sent with {' or '.join(AUTO_PROFILES)} only, not {profile_name}",
+        )
+    encoder = encoders.get(
+        message, profile_name, cells or message.cells, packed, symbol_start if packed else 0
+    )
     frames = encoder.frames(start, count)
     side = encoder.geometry.side
     return Response(
@@ -60,5 +77,6 @@ def read_frames(
             "X-Frame-Start": str(start),
             "X-Frame-Count": str(count),
             "X-Frame-Bytes": str(-(-side * side // 8)),
+            "X-Frame-Symbols": str(encoder.symbols_per_frame),
         },
     )

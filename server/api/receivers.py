@@ -27,6 +27,7 @@ from starlette.requests import HTTPConnection
 from eventocc.occ.report import (
     INT64_MAX,
     FrameStats,
+    HealthReport,
     Hello,
     MessageReport,
     PoseReport,
@@ -176,8 +177,11 @@ async def handle_report(live: LiveState, receiver: str, seq: int | None, report:
         )
     elif seq is not None:
         await asyncio.to_thread(live.receptions.mark_stored, receiver, seq)
-    if isinstance(report, FrameStats) and report.bits_read:
-        live.frames_decoded += 1
+    if isinstance(report, FrameStats):
+        live.frames_decoded += bool(report.bits_read)
+        live.link_frame(receiver, report)
+    if isinstance(report, HealthReport):
+        live.link.on_health(receiver, report.source_speed)
     topic = f"{receiver}:{report.type}"
     if isinstance(report, ProgressReport):
         live.stream_seen.setdefault((receiver, report.stream_id), time.monotonic())

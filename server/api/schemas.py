@@ -5,10 +5,11 @@ from __future__ import annotations
 from datetime import datetime
 from enum import StrEnum
 from functools import cache
-from typing import Self
+from typing import Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from eventocc.occ.link_policy import AUTO_PROFILES, HOLDS
 from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
 from eventocc.occ.profiles import MAX_REFRESH_HZ, MIN_REFRESH_HZ, PROFILE_NAMES
 from eventocc.occ.stream import StreamEncoder
@@ -99,9 +100,25 @@ class TransmitterStatus(BaseModel):
         0, ge=0, le=MAX_COUNTER, description="Refreshes held because the frame had not arrived."
     )
     user_agent: str | None = Field(None, max_length=512)
+    packed: bool = Field(
+        False,
+        description="Frames of fixed-size fountain symbols (auto mode): the message's symbols "
+        "are the same at every density, so a receiver keeps its progress across changes.",
+    )
+    symbol_start: int = Field(
+        0,
+        ge=0,
+        le=MAX_COUNTER,
+        description="Packed: the fountain stream position of this segment's first symbol.",
+    )
+    hold: int = Field(
+        1, ge=1, le=max(HOLDS), description="Display refreshes each frame is held for."
+    )
 
     @model_validator(mode="after")
     def _link_can_run(self) -> Self:
+        if self.packed and self.profile is not None and self.profile.value not in AUTO_PROFILES:
+            raise ValueError(f"packed frames are sent with {' or '.join(AUTO_PROFILES)} only")
         if self.profile is not None and self.cells is not None:
             refusal = link_refusal(self.profile.value, self.cells)
             if refusal:
@@ -113,3 +130,52 @@ class TransmitterStatus(BaseModel):
 
 class TransmitterStatusPublic(TransmitterStatus):
     received: datetime = Field(description="Server time (UTC) the status arrived.")
+
+
+RECEIVER_ID_PATTERN = r"^[0-9a-f]{16}$"
+
+
+class LinkModeRequest(BaseModel):
+    """``PUT /api/transmitter/mode``: who chooses what the transmitter sends."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Literal["fixed", "auto"] = Field(
+        description="fixed: the page sends what its user set; auto: the server chooses from "
+        "the receivers' reports and the page follows."
+    )
+    pin: str | None = Field(
+        None,
+        pattern=RECEIVER_ID_PATTERN,
+        description="auto: follow this receiver (its public id) rather than the weakest "
+        "verified one.",
+    )
+
+
+class LinkChoicePublic(BaseModel):
+    profile: str
+    cells: int
+    hold: int = Field(description="Display refreshes each frame is held for.")
+    frame_hz: float
+
+
+class GoodputPoint(BaseModel):
+    t: float = Field(description="Server time (s, monotonic) of the second's start.")
+    bps: int = Field(description="Verified payload bits of the served receiver that second.")
+    settings: str
+
+
+class LinkModePublic(BaseModel):
+    mode: str
+    pinned: str | None
+    served: str | None = Field(description="The receiver whose measurements set the choice.")
+    choice: LinkChoicePublic | None = Field(description="What the page sends (auto only).")
+    reason: str = Field(description="Why: what moved it, or the margin that holds it.")
+    since_s: float = Field(description="Seconds since the choice last changed.")
+    history: list[GoodputPoint]
+
+
+class TransmitterStatusReply(TransmitterStatusPublic):
+    """What a page's status report is answered with: its status, and what to send."""
+
+    link: LinkModePublic

@@ -9,9 +9,10 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from eventocc.occ.report import Hello
+from eventocc.occ.report import FrameStats, Hello
 from eventocc.server.api.schemas import TransmitterStatusPublic
 from eventocc.server.hub import Hub
+from eventocc.server.link_mode import LinkMode
 from eventocc.server.receptions import ReceptionStore
 from eventocc.server.store import MessageStore
 
@@ -47,6 +48,9 @@ class LiveState:
     """(receiver, stream id) -> monotonic time of its first progress report: goodput's start."""
     recent_receptions: deque[tuple[float, int]] = field(default_factory=deque)
     """(monotonic time, bits) of the receptions in the last ``GOODPUT_WINDOW_S``."""
+    link: LinkMode = field(default_factory=LinkMode)
+    """The transmitter's mode and, in auto, the settings chosen for it and why."""
+    _link_published: float = 0.0
 
     def goodput_bps(self) -> float:
         """Verified message bits per second over the last ``GOODPUT_WINDOW_S``, all receivers."""
@@ -59,7 +63,27 @@ class LiveState:
         """Keep a transmitter's status and tell the dashboards: the one path for REST and
         websocket reports alike."""
         self.transmitter = latest
+        if latest.refresh_hz is not None:
+            self.link.set_display_hz(latest.refresh_hz, latest.hold)
         self.hub.publish(transmitter_update(latest), topic="transmitter")
+
+    def set_link_mode(self, mode: str, pinned: str | None) -> None:
+        self.link.set_mode(mode, pinned, time.monotonic())
+        self.publish_link()
+
+    def link_frame(self, receiver: str, report: FrameStats) -> None:
+        """A receiver's frame report, for auto mode's controller; the dashboards hear of a
+        change at once, and of the goodput about once a second."""
+        now = time.monotonic()
+        if self.link.on_frame(receiver, report, now) or now - self._link_published >= 1.0:
+            self.publish_link()
+
+    def publish_link(self) -> None:
+        self._link_published = time.monotonic()
+        self.hub.publish({"type": "link_mode", **self.link_public()}, topic="link_mode")
+
+    def link_public(self) -> dict[str, Any]:
+        return self.link.public(time.monotonic())
 
     def claim(self, hello: Hello) -> ReceiverSession:
         """Bind the receiver to a new connection. Only the receiver itself knows its secret
@@ -78,6 +102,7 @@ class LiveState:
         if self.receivers.get(session.receiver) is not session:
             return False
         del self.receivers[session.receiver]
+        self.link.forget(session.receiver)
         self.hub.forget(f"{session.receiver}:")
         self.announce_receivers()
         return True

@@ -1,0 +1,45 @@
+"""The closed loop end to end on the virtual camera: a camera carried from near to far in the
+middle of a message. The controller steps down, and the message completes across the changes,
+its symbols of every density counting (``bench.loop_sim``: simulator, receiver rebuilt at each
+change, controller fed by the receiver's frame reports)."""
+
+from __future__ import annotations
+
+from bench.loop_sim import LoopScene, random_message, run_link
+from eventocc.occ.link_policy import LinkPolicy, PolicyConfig, px_at
+from eventocc.occ.packing import SYMBOL_SIZE
+from eventocc.receiver.camera import CameraModel
+
+MOVE_S = 0.8
+IDEAL_PX = {"robust": 4.0, "fast": 5.0}
+"""What the clean (``ideal``) sensor needs: it reads smaller cells than the EVK4."""
+
+
+def test_a_camera_carried_away_mid_message_steps_down_and_the_message_completes() -> None:
+    loop = LoopScene(
+        0.35,
+        screen_m=0.2,
+        camera=CameraModel.paper().binned(640, 360),
+        preset="ideal",
+        distance_after=(MOVE_S, 0.9),
+    )
+    message = random_message(3000)
+    policy = LinkPolicy(config=PolicyConfig(min_px=IDEAL_PX))
+    run = run_link(loop, message, 6.0, policy=policy, stop_when_done=True)
+
+    before = [s for s in run.segments if s.t_s < MOVE_S]
+    after = [s for s in run.segments if s.t_s >= MOVE_S]
+    climbed = before[-1].choice
+    assert climbed.cells > 16, run.segments  # near, it had stepped up
+    assert after and after[0].reason.startswith(f"down from {climbed}"), run.segments
+    # Far away the densest marker it had climbed to no longer fits the camera's pixels.
+    far_px = loop.px_per_cell(16, MOVE_S)
+    assert px_at(far_px, 16, climbed.cells) < IDEAL_PX[climbed.profile]
+    assert after[-1].choice.cells < climbed.cells
+
+    assert run.message_ok, "the message must come out once, byte-exact and verified"
+    assert run.message_done_s is not None and run.message_done_s > after[0].t_s
+    # The symbols collected near count: far away alone, N = 16 robust (one symbol in each of
+    # 30 data frames a second) would need over twice as long as it took.
+    far_alone_s = len(message) / (SYMBOL_SIZE * 30)
+    assert run.message_done_s - after[0].t_s < 0.5 * far_alone_s

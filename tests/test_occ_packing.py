@@ -1,0 +1,114 @@
+"""Packed frames: one message's symbols across densities and profiles, progress kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from eventocc.occ.packing import SYMBOL_SIZE
+from eventocc.occ.stream import StreamDecoder, StreamEncoder
+
+MESSAGE = bytes(np.random.default_rng(7).integers(0, 256, 3000, dtype=np.uint8))
+
+
+def data_frames(enc: StreamEncoder, refreshes: int) -> list[np.ndarray]:
+    return [enc.payload_bits(k) for k in range(refreshes) if enc.is_data_frame(k)]
+
+
+def frames_to_finish(dec: StreamDecoder, enc: StreamEncoder) -> int | None:
+    """Data frames of ``enc`` pushed until ``dec`` returns the message (None: never)."""
+    for i, bits in enumerate(data_frames(enc, enc.cycle)):
+        if got := dec.push(bits):
+            assert got[0].data == MESSAGE and got[0].verified
+            return i + 1
+    return None
+
+
+@pytest.mark.parametrize(("profile", "cells"), [("robust", 16), ("robust", 40), ("fast", 64)])
+def test_a_packed_stream_alone_decodes(profile: str, cells: int) -> None:
+    enc = StreamEncoder(MESSAGE, name="m.bin", profile=profile, cells=cells, packed=True)
+    assert frames_to_finish(StreamDecoder(profile=profile, cells=cells), enc) is not None
+
+
+def test_packed_frames_carry_whole_symbols_of_one_size() -> None:
+    for cells, per_frame in ((16, 1), (32, 6), (64, 30), (128, 126)):
+        enc = StreamEncoder(MESSAGE, cells=cells, packed=True)
+        assert enc.symbols_per_frame == per_frame
+    dec = StreamDecoder(cells=64)
+    dec.push(StreamEncoder(MESSAGE, cells=64, packed=True).payload_bits(0))
+    assert dec.verified_bits == 8 * 30 * SYMBOL_SIZE
+
+
+def test_progress_survives_density_and_profile_changes() -> None:
+    """Half the symbols at N = 16 robust, then a receiver rebuilt for N = 48 fast that adopts
+    the first one's progress: it finishes in about half the frames a fresh one needs."""
+    first = StreamEncoder(MESSAGE, name="m.bin", cells=16, packed=True)
+    dec16 = StreamDecoder(cells=16)
+    needed = len(MESSAGE) // SYMBOL_SIZE
+    shown = 0
+    for k in range(first.cycle):
+        if first.is_data_frame(k):
+            dec16.push(first.payload_bits(k))
+        shown = k + 1
+        (held,) = [p["symbols_held"] for p in dec16.progress().values()]
+        if held >= needed // 2:
+            break
+    second = StreamEncoder(
+        MESSAGE,
+        name="m.bin",
+        profile="fast",
+        cells=48,
+        packed=True,
+        symbol_start=first.symbol_end(shown),
+    )
+    adopted = StreamDecoder(profile="fast", cells=48)
+    adopted.adopt(dec16)
+    (progress,) = adopted.progress().values()
+    assert progress["symbols_held"] >= needed // 2
+    with_history = frames_to_finish(adopted, second)
+    fresh = frames_to_finish(StreamDecoder(profile="fast", cells=48), second)
+    assert with_history is not None and fresh is not None
+    assert with_history <= 0.65 * fresh
+
+
+def test_the_next_segment_sends_symbols_the_last_did_not() -> None:
+    first = StreamEncoder(MESSAGE, cells=32, packed=True)
+    second = StreamEncoder(MESSAGE, cells=24, packed=True, symbol_start=first.symbol_end(40))
+    dec = StreamDecoder(cells=32)
+    for bits in data_frames(first, 40):
+        dec.push(bits)
+    (before,) = [p["symbols_held"] for p in dec.progress().values()]
+    later = StreamDecoder(cells=24)
+    later.adopt(dec)
+    for bits in data_frames(second, 10):
+        later.push(bits)
+    (after,) = [p["symbols_held"] for p in later.progress().values()]
+    # Every symbol of the next segment is new: none repeats one already held.
+    assert after - before == 5 * second.symbols_per_frame
+
+
+def test_unpacked_progress_is_not_adopted_across_densities() -> None:
+    enc = StreamEncoder(MESSAGE, cells=32)
+    dec = StreamDecoder(cells=32)
+    for bits in data_frames(enc, 20):
+        dec.push(bits)
+    assert dec.progress()
+    later = StreamDecoder(cells=48)
+    later.adopt(dec)
+    assert later.progress() == {}
+
+
+def test_a_delivered_message_stays_delivered_after_a_rebuild() -> None:
+    enc = StreamEncoder(MESSAGE, cells=64, packed=True)
+    dec = StreamDecoder(cells=64)
+    assert frames_to_finish(dec, enc) is not None
+    later = StreamDecoder(cells=32)
+    later.adopt(dec)
+    assert frames_to_finish(later, StreamEncoder(MESSAGE, cells=32, packed=True)) is None
+
+
+def test_paper_cannot_be_packed() -> None:
+    with pytest.raises(ValueError, match="no fountain symbols"):
+        StreamEncoder(MESSAGE, profile="paper", cells=16, packed=True)
+    with pytest.raises(ValueError, match="symbol_start"):
+        StreamEncoder(MESSAGE, cells=16, packed=True, symbol_start=-1)
