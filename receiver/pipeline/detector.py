@@ -142,9 +142,15 @@ class Detection:
 
 # --- temporal ------------------------------------------------------------------------------
 @numba.njit(cache=True, nogil=True)
-def _triplet_heat(t, x, y, p, freq_hz, sigma_hz, heat, triplets, last_pol, last_flip):
-    """Accumulate one part of the events into ``heat`` and ``triplets``; ``last_pol`` and
-    ``last_flip`` (the last neg->pos / pos->neg times) carry each pixel's state between parts."""
+def _triplet_heat(events, blink, sums, pixels):
+    """Accumulate one part of the ``events`` = (t, x, y, p) into ``sums`` = (heat, triplets),
+    weighing a triplet by how well its period matches ``blink`` = (freq_hz, sigma_hz);
+    ``pixels`` = (last_pol, last_flip) (the last neg->pos / pos->neg times) carries each
+    pixel's state between parts."""
+    t, x, y, p = events
+    freq_hz, sigma_hz = blink
+    heat, triplets = sums
+    last_pol, last_flip = pixels
     for i in range(t.shape[0]):
         xi, yi, pi = x[i], y[i], p[i]
         if pi == last_pol[yi, xi]:
@@ -168,19 +174,9 @@ def blink_heatmap(
     triplets = np.zeros((height, width), np.int32)
     last_pol = np.zeros((height, width), np.int8)
     last_flip = np.full((2, height, width), -1, np.int64)
+    blink, sums, pixels = (blink_hz, sigma_frac * blink_hz), (heat, triplets), (last_pol, last_flip)
     for ev in parts:
-        _triplet_heat(
-            ev["t"],
-            ev["x"],
-            ev["y"],
-            ev["p"],
-            blink_hz,
-            sigma_frac * blink_hz,
-            heat,
-            triplets,
-            last_pol,
-            last_flip,
-        )
+        _triplet_heat((ev["t"], ev["x"], ev["y"], ev["p"]), blink, sums, pixels)
     return heat, triplets
 
 

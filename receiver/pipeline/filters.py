@@ -12,22 +12,15 @@ _NEVER = np.iinfo(np.int64).min // 2
 
 
 @numba.njit(cache=True, nogil=True)
-def _filter_kernel(
-    t,
-    x,
-    y,
-    p,
-    last_pos,
-    last_neg,
-    last_kept,
-    refractory,
-    same_us,
-    oppo_us,
-    neighbourhood,
-    radius,
-    window_us,
-    min_neighbours,
-):
+def _filter_kernel(events, pixels, refractory_rule, neighbourhood_rule):
+    """Which of the ``events`` = (t, x, y, p) pass, updating ``pixels`` = (last_pos, last_neg,
+    last_kept) (each pixel's last event of each polarity, its last kept one);
+    ``refractory_rule`` = (on, same_us, oppo_us), ``neighbourhood_rule`` = (on, radius,
+    window_us, min_neighbours)."""
+    t, x, y, p = events
+    last_pos, last_neg, last_kept = pixels
+    refractory, same_us, oppo_us = refractory_rule
+    neighbourhood, radius, window_us, min_neighbours = neighbourhood_rule
     n = t.shape[0]
     keep = np.zeros(n, dtype=np.bool_)
     height, width = last_kept.shape
@@ -73,19 +66,9 @@ class EventFilter:
             return events
         q = self.params
         keep = _filter_kernel(
-            events["t"],
-            events["x"],
-            events["y"],
-            events["p"],
-            self._last_pos,
-            self._last_neg,
-            self._last_kept,
-            q.refractory,
-            q.same_polarity_us,
-            q.opposite_polarity_us,
-            q.neighbourhood,
-            q.radius_px,
-            q.window_us,
-            q.min_neighbours,
+            (events["t"], events["x"], events["y"], events["p"]),
+            (self._last_pos, self._last_neg, self._last_kept),
+            (q.refractory, q.same_polarity_us, q.opposite_polarity_us),
+            (q.neighbourhood, q.radius_px, q.window_us, q.min_neighbours),
         )
         return events[keep]

@@ -148,9 +148,13 @@ def events_between(
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_warped(t, x, y, p, polarity, t_ref, vx, vy, x0, y0, counts):
-    """Add to ``counts`` (the box from x0, y0) the events of ``polarity``, each moved along the
-    flow (vx, vy) px/ms to ``t_ref``, at its nearest pixel."""
+def _add_warped(events, polarity, t_ref, flow, counts, origin):
+    """Add to ``counts`` (the box from ``origin`` = (x0, y0)) the ``events`` = (t, x, y, p) of
+    ``polarity``, each moved along the ``flow`` = (vx, vy) px/ms to ``t_ref``, at its nearest
+    pixel."""
+    t, x, y, p = events
+    vx, vy = flow
+    x0, y0 = origin
     h, w = counts.shape
     for i in range(t.shape[0]):
         if p[i] != polarity:
@@ -177,9 +181,8 @@ def warped_counts(
     lo, hi = int(np.ceil(t0)), int(np.ceil(t1))
     for ev in parts:
         ev = ev[first_at(ev["t"], lo) : first_at(ev["t"], hi)]
-        _add_warped(
-            ev["t"], ev["x"], ev["y"], ev["p"], polarity, t_ref, *flow, box.x0, box.y0, counts
-        )
+        events = (ev["t"], ev["x"], ev["y"], ev["p"])
+        _add_warped(events, polarity, t_ref, (*flow,), counts, (box.x0, box.y0))
     return counts
 
 
