@@ -60,13 +60,11 @@ def wait_for_status(base_url: str, predicate, timeout_s: float = 20.0) -> dict:
     raise AssertionError(f"the page never reported what was expected; last: {status}")
 
 
-def test_the_page_follows_the_servers_choice_without_restarting_the_message(
-    served, browser, artifacts: Path
-) -> None:
-    base_url, app = served
+def play_in_auto(base_url: str, browser, name: str, data: bytes):
+    """Upload ``data`` as ``name`` and play it on a transmitter page in auto mode."""
     request = urllib.request.Request(
-        f"{base_url}/api/messages?name=auto.txt&profile=robust&cells=16",
-        data=MESSAGE,
+        f"{base_url}/api/messages?name={name}&profile=robust&cells=16",
+        data=data,
         headers={"Content-Type": "application/octet-stream"},
         method="POST",
     )
@@ -77,6 +75,14 @@ def test_the_page_follows_the_servers_choice_without_restarting_the_message(
     page.click("#acknowledge")
     page.wait_for_function("!document.querySelector('#play').disabled")
     page.click("#play")
+    return page
+
+
+def test_the_page_follows_the_servers_choice_without_restarting_the_message(
+    served, browser, artifacts: Path
+) -> None:
+    base_url, app = served
+    page = play_in_auto(base_url, browser, "auto.txt", MESSAGE)
 
     # It starts where any camera reads, packed, and the server says so.
     first = wait_for_status(
@@ -125,19 +131,7 @@ def test_a_held_frame_stays_up_for_its_refreshes_and_the_rate_reported_is_the_fr
     served, browser
 ) -> None:
     base_url, app = served
-    request = urllib.request.Request(
-        f"{base_url}/api/messages?name=held.txt&profile=robust&cells=16",
-        data=MESSAGE[::-1],
-        headers={"Content-Type": "application/octet-stream"},
-        method="POST",
-    )
-    with urllib.request.urlopen(request) as response:
-        message = json.load(response)
-    page = browser.new_page(viewport=VIEWPORT, device_scale_factor=1)
-    page.goto(f"{base_url}/transmitter?id={message['id']}&cell_px={CELL_PX}&mode=auto")
-    page.click("#acknowledge")
-    page.wait_for_function("!document.querySelector('#play').disabled")
-    page.click("#play")
+    page = play_in_auto(base_url, browser, "held.txt", MESSAGE[::-1])
     wait_for_status(base_url, lambda s: s["packed"] and s["frame_index"] > 10)
     app.state.live.link.choose(LinkChoice("robust", 16, hold=2), "held", time.monotonic())
     held = wait_for_status(base_url, lambda s: s["hold"] == 2 and s["frame_index"] > 30)
