@@ -29,6 +29,7 @@ from bench.scenes.run import (
     on_per_transition,
     pose_errors,
     reason_kind,
+    receiver_config,
     run_scene,
     score_poses,
 )
@@ -338,13 +339,7 @@ def _detect_at(d: SceneDraw, after_us: int):
     events = np.concatenate(list(rec))
     now = scene.marker_appears_us + after_us
     window = events[(events["t"] >= now - 70_000) & (events["t"] < now)]
-    config = ReceiverConfig(
-        scene.camera,
-        cells=d.cells,
-        profile=d.profile,
-        refresh_hz=d.refresh_hz,
-        marker_size_m=d.marker_size_m,
-    )
+    config = receiver_config(d, scene.camera)
     T = invert(rec.pose_at(np.array([now]))[0])
     world = config.geometry.locator_corners(d.marker_size_m)
     return lambda: detect(window, config), scene.camera.project(world @ T[:3, :3].T + T[:3, 3])

@@ -19,6 +19,7 @@ import numpy as np
 
 from bench.scenes.draw import SceneDraw, draw
 from eventocc.occ.profiles import get_profile
+from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.receiver import Receiver
 from eventocc.receiver.pipeline.report import DecodeLog
@@ -100,18 +101,24 @@ def on_per_transition(t: np.ndarray, pixel: np.ndarray, gap_us: float) -> tuple[
     return float(np.median(sizes[busy])), float(np.percentile(sizes[busy], 90))
 
 
-def run_scene(draw: SceneDraw) -> dict:
-    """Simulate ``draw`` and decode it with the streaming receiver; its scores, flat."""
-    wall0 = time.perf_counter()
-    scene = draw.scene()
-    rec = simulate(scene, draw.duration_s)
-    config = ReceiverConfig(
-        scene.camera,
+def receiver_config(draw: SceneDraw, camera: CameraModel) -> ReceiverConfig:
+    """What a user tells the receiver of ``draw``: the link settings, the calibration and the
+    marker's size; everything else at its defaults."""
+    return ReceiverConfig(
+        camera,
         cells=draw.cells,
         profile=draw.profile,
         refresh_hz=draw.refresh_hz,
         marker_size_m=draw.marker_size_m,
     )
+
+
+def run_scene(draw: SceneDraw) -> dict:
+    """Simulate ``draw`` and decode it with the streaming receiver; its scores, flat."""
+    wall0 = time.perf_counter()
+    scene = draw.scene()
+    rec = simulate(scene, draw.duration_s)
+    config = receiver_config(draw, scene.camera)
     framed = get_profile(draw.profile).framed
     receiver = Receiver(config, message_size=None if framed else draw.message_bytes)
     log = DecodeLog(receiver, SceneTruth(scene))
