@@ -18,6 +18,7 @@ from eventocc.occ.marker import render
 from eventocc.occ.stream import StreamEncoder
 from eventocc.server.demo import bound_url, start_server
 from eventocc.server.settings import Settings
+from tests.live_clients import upload
 
 pytestmark = pytest.mark.browser
 
@@ -62,14 +63,7 @@ def wait_for_status(base_url: str, predicate, timeout_s: float = 20.0) -> dict:
 
 def play_in_auto(base_url: str, browser, name: str, data: bytes):
     """Upload ``data`` as ``name`` and play it on a transmitter page in auto mode."""
-    request = urllib.request.Request(
-        f"{base_url}/api/messages?name={name}&profile=robust&cells=16",
-        data=data,
-        headers={"Content-Type": "application/octet-stream"},
-        method="POST",
-    )
-    with urllib.request.urlopen(request) as response:
-        message = json.load(response)
+    message = upload(base_url, data, name)  # robust, N = 16: the defaults
     page = browser.new_page(viewport=VIEWPORT, device_scale_factor=1)
     page.goto(f"{base_url}/transmitter?id={message['id']}&cell_px={CELL_PX}&mode=auto")
     page.click("#acknowledge")
