@@ -15,6 +15,7 @@ Still camera:
    It is measured on the ON events of the region's outer one-cell band, the locator ring.
 2. *Spatial.* The positive events around those bursts outline the inner locator; its convex
    quadrilateral must pass the paper's criteria (four corners, large, right angles, equal sides).
+   Once oriented, its corners are refined to sub-pixel edges less blur's spread (``edges``).
 3. *Orientation.* The ring of the inner locator (solid "L" at bottom-left, dashed top and right)
    is read in all four rotations; the best match orders the corners TL, TR, BR, BL.
 
@@ -57,6 +58,7 @@ from scipy.spatial.transform import Rotation
 from eventocc.occ.marker import MarkerGeometry
 from eventocc.receiver.pipeline.buffer import EventColumns, first_at, to_columns
 from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.edges import refine_corners
 from eventocc.receiver.pipeline.locate import (
     HALF_WINDOW,
     Box,
@@ -551,6 +553,7 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
         raise MarkerNotFound(
             f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
         )
+    corners = refine_corners(corners, lit, config.geometry, cam)
     # The burst time refers to the latest whole period inside the window.
     last = burst + np.floor((t_end - burst) / period) * period
     T = _solve_pnp(corners, config)
