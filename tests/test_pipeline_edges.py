@@ -22,13 +22,19 @@ _SUPER = 4
 
 
 def _lit_image(
-    geometry: MarkerGeometry, corners: np.ndarray, spread_px: float, fill: float, seed: int
+    geometry: MarkerGeometry,
+    corners: np.ndarray,
+    spread_px: float,
+    fill: float,
+    seed: int,
+    ring: np.ndarray | None = None,
 ) -> np.ndarray:
     """What fires with the bursts: the locator and a random payload seen through ``corners``
     (ideal pixels, TL, TR, BR, BL), the lit area grown by about ``spread_px`` on every side
-    (blur seen through a log response), a share ``fill`` of its pixels firing."""
+    (blur seen through a log response), a share ``fill`` of its pixels firing; ``ring``, the
+    cells shown in place of the locator's ring."""
     rng = np.random.default_rng(seed)
-    cells = geometry.inner_locator.copy()
+    cells = geometry.inner_locator.copy() if ring is None else ring.copy()
     n = geometry.cells
     cells[1:-1, 1:-1] = rng.random((n, n)) < 0.5
     side = geometry.locator_side
@@ -90,3 +96,13 @@ def test_an_image_that_cannot_say_leaves_the_corners_as_they_were():
     corners = IDEAL.copy()
     empty = np.zeros((CAMERA.height, CAMERA.width), np.float32)
     assert refine_corners(corners, empty, geometry, CAMERA) is corners
+
+
+def test_a_border_that_is_not_the_locators_leaves_the_corners_as_they_were():
+    # What frames mixed in a window look like: the border cells lit at random, not as the
+    # locator's dashes and 'L'.
+    geometry = MarkerGeometry(16)
+    ring = np.random.default_rng(5).random((18, 18)) < 0.5
+    lit = _lit_image(geometry, IDEAL, 1.2, 1.0, 3, ring=ring)
+    corners = quadrilateral(outline(lit > 0))
+    assert refine_corners(corners, lit, geometry, CAMERA) is corners

@@ -32,6 +32,10 @@ _MIN_LEVEL = 0.25
 seen (the phase gate missed its rows, or the view cut it) and gives no edge."""
 _MIN_CELLS = 3
 """Cells an edge needs for its line."""
+_MAX_SCATTER = 0.1
+"""Median distance, in cells, of the border cells' edges from their line, beyond which the
+image does not show the locator's border as it is (frames mixed in the window, a cell
+misread): then the outline's corners stand."""
 _ROUNDS = 2
 """Refinements, each on the grid the last one gave: the first moves the samples onto the cells."""
 
@@ -69,17 +73,19 @@ def refine_corners(
     more than half a cell)."""
     image = np.ascontiguousarray(lit, np.float32)
     side = geometry.locator_side
+    cell_px = np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).min() / side
     refined = corners
     for _ in range(_ROUNDS):
-        found = _fit(_Grid(refined, side, camera), image, geometry)
+        found = _fit(_Grid(refined, side, camera), image, geometry, cell_px)
         if found is None:
             return corners
         refined = found
-    cell = np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).min() / side
-    return refined if np.abs(refined - corners).max() <= cell / 2 else corners
+    return refined if np.abs(refined - corners).max() <= cell_px / 2 else corners
 
 
-def _fit(grid: _Grid, image: np.ndarray, geometry: MarkerGeometry) -> np.ndarray | None:
+def _fit(
+    grid: _Grid, image: np.ndarray, geometry: MarkerGeometry, cell_px: float
+) -> np.ndarray | None:
     side, loc = geometry.locator_side, geometry.inner_locator
     dark = _dark_level(grid, image, geometry)
     spread = _spread(grid, image, loc, dark)
@@ -102,6 +108,9 @@ def _fit(grid: _Grid, image: np.ndarray, geometry: MarkerGeometry) -> np.ndarray
         edge = start[seen] + (lit - spread)[:, None] * normal
         points = grid.ideal(edge).astype(np.float32)
         vx, vy, x0, y0 = cv2.fitLine(points, cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
+        scatter = np.median(np.abs((points[:, 0] - x0) * vy - (points[:, 1] - y0) * vx))
+        if scatter > _MAX_SCATTER * cell_px:
+            return None
         lines.append(np.cross([x0, y0, 1.0], [x0 + vx, y0 + vy, 1.0]))
     # TL is where the left edge (last) meets the top one (first), and so on clockwise.
     meet = np.cross(np.roll(lines, 1, axis=0), lines)
