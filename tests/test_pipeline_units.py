@@ -17,6 +17,9 @@ from eventocc.receiver.pipeline.config import DecoderParams, FilterParams, Recei
 from eventocc.receiver.pipeline.decoder import CellReader, FrameClock, cell_side_px, read_stride
 from eventocc.receiver.pipeline.detector import (
     MarkerNotFound,
+    _binned_period_match,
+    _period_match,
+    blink_heatmap,
     blink_phase,
     check_quadrilateral,
     largest_region,
@@ -340,3 +343,39 @@ def test_the_blinking_region_joins_blobs_less_than_a_cell_apart():
     hull = largest_region(heat, 0.2, locator_side=34)
     assert hull[:, 1].min() == 60 and hull[:, 1].max() == 299
     assert hull[:, 0].max() == 249
+
+
+def _thinned_blink(blink_hz: float, side: int, keep: float, seed: int = 0) -> np.ndarray:
+    """A square of pixels blinking at ``blink_hz``, four ON events per burst within 0.5 ms and
+    four OFF events half a period later within 4 ms (a slow fall), of which ``keep`` survive."""
+    rng = np.random.default_rng(seed)
+    period = 1e6 / blink_hz
+    y, x = np.mgrid[:side, :side]
+    t, p = [], []
+    for k in range(8):
+        for pol, start, spread in ((1, 0.0, 500.0), (-1, period / 2, 4000.0)):
+            t.append(k * period + start + rng.uniform(0, spread, (4, side, side)))
+            p.append(np.full((4, side, side), pol))
+    t, p = np.concatenate(t).ravel(), np.concatenate(p).ravel()
+    x, y = np.tile(x.ravel(), 16 * 4), np.tile(y.ravel(), 16 * 4)
+    kept = np.flatnonzero(rng.random(t.size) < keep)
+    kept = kept[np.argsort(t[kept], kind="stable")]
+    return make_events(np.rint(t[kept]).astype(np.int64), x[kept], y[kept], p[kept])
+
+
+@pytest.mark.parametrize("refresh_hz, blinks", [(240.0, True), (200.0, False), (280.0, False)])
+def test_a_thinned_blink_is_timed_on_binned_pixels(refresh_hz, blinks):
+    """A readout that keeps a tenth of the events leaves a pixel a burst's one event or none:
+    its own periods spread and miss the told blink, while 2 x 2 pixels' still match it. The
+    binned match still refuses a display a sixth off."""
+    side = 64
+    config = ReceiverConfig(
+        CameraModel(side, side, np.array([[60.0, 0, 32], [0, 60.0, 32], [0, 0, 1]])),
+        refresh_hz=240.0,
+    )
+    ev = _thinned_blink(refresh_hz / 2, side, keep=0.1)
+    mask = np.ones((side, side), np.uint8)
+    heat, triplets = blink_heatmap([ev], side, side, config.blink_hz, config.detector.sigma_frac)
+    least = config.detector.min_period_match
+    assert _period_match(heat, triplets, mask) < least
+    assert (_binned_period_match([ev], mask, config) >= least) == blinks

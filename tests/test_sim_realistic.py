@@ -101,7 +101,7 @@ def test_the_rate_controller_keeps_its_budget_in_each_period_and_no_less():
     assert out["t"][:1000].min() < 50 and out["t"][:1000].max() > 950
 
 
-def test_the_link_loses_runs_of_events_only_beyond_its_rate_and_buffer():
+def test_the_link_loses_events_only_beyond_its_rate_and_buffer_and_evenly_over_the_view():
     readout = _readout(link_hz=10e6, link_buffer=500)  # 10 events per microsecond
     slow = _events(np.repeat(np.arange(0, 1000), 8))  # 8 per microsecond: all carried
     assert len(readout.apply(slow)) == len(slow)
@@ -110,12 +110,13 @@ def test_the_link_loses_runs_of_events_only_beyond_its_rate_and_buffer():
     carried = len(out)
     # The buffer fills, then the link's rate gets through: half the events, plus the buffer.
     assert carried == pytest.approx(10 * 2000 + 500, rel=0.02)
-    # Lost in runs, as a full buffer loses whole packets: not every other event.
+    assert readout.dropped_link == len(fast) - carried
+    # The events of one microsecond come packed in row order; a full buffer still thins the
+    # last of them as much as the first (the bottom of the view as much as its top).
     kept = np.zeros(len(fast), bool)
     kept[out["y"].astype(np.int64) * 1024 + out["x"]] = True
-    edges = np.flatnonzero(np.diff(np.r_[1, kept.astype(int), 1]))
-    assert np.diff(edges)[::2].max() >= 9  # 10 arrive per 20: the longest run lost
-    assert readout.dropped_link == len(fast) - carried
+    by_rank = kept[1000:].reshape(-1, 20).mean(axis=0)  # once the buffer is full
+    assert by_rank.min() > 0.4 and by_rank.max() < 0.6
     # The surviving events keep their sensor timestamps.
     assert np.isin(out["t"], fast["t"]).all()
 

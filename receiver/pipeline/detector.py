@@ -520,8 +520,9 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     cv2.fillConvexPoly(mask, hull.astype(np.int32), 1)
     # A short window cannot resolve the blink frequency by its DFT, but every triplet measures
     # one period: in the region they must match the told blink, not just come closest to it.
-    inside = mask > 0
-    match = float(heat[inside].sum() / max(1, triplets[inside].sum()))
+    match = _period_match(heat, triplets, mask)
+    if match < params.min_period_match and cam.width % 2 == 0 == cam.height % 2:
+        match = max(match, _binned_period_match(parts, mask, config))
     if match < params.min_period_match:
         raise MarkerNotFound(
             f"temporal: the blinking region's period does not match {config.blink_hz:g} Hz "
@@ -558,6 +559,45 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     last = burst + np.floor((t_end - burst) / period) * period
     T = _solve_pnp(corners, config)
     return Detection(corners, T, t_end, float(last), config.blink_hz, ratio, score, np.zeros(2))
+
+
+def _period_match(heat: np.ndarray, triplets: np.ndarray, mask: np.ndarray) -> float:
+    """Mean Gaussian weight of the triplets inside ``mask``: how well their periods match the
+    told blink (``DetectorParams.min_period_match``)."""
+    inside = mask > 0
+    return float(heat[inside].sum() / max(1, triplets[inside].sum()))
+
+
+def _binned_period_match(
+    parts: list[np.ndarray], mask: np.ndarray, config: ReceiverConfig
+) -> float:
+    """The period match of the events on 2 x 2 binned pixels, or 0 if blinks two widths
+    (``2 * sigma_frac``) slower or faster match them as well.
+
+    A readout that thins the events (a rate controller, a full link) leaves a pixel a couple
+    of events per blink: it misses whole bursts and times the others by whichever of their
+    events survived, so its own triplets' periods spread even at the right blink. Four pixels
+    together keep an event of nearly every burst. Their periods still spread more than dense
+    pixels' do, so a display a sixth off the told rate can match them about as well as dense
+    pixels match the right one: the told blink must beat its neighbours on the same events.
+    Where each pixel is dense, binning mixes neighbouring cells' bursts and matches less well
+    than the pixels themselves, so this is taken only where those fail."""
+    cam, params = config.camera, config.detector
+    binned = []
+    for p in parts:
+        q = p.copy()
+        q["x"] //= 2
+        q["y"] //= 2
+        binned.append(q)
+    off = 2 * params.sigma_frac
+    told, slower, faster = (
+        _period_match(
+            *blink_heatmap(binned, cam.width // 2, cam.height // 2, hz, params.sigma_frac),
+            mask[::2, ::2],
+        )
+        for hz in (config.blink_hz, config.blink_hz * (1 - off), config.blink_hz * (1 + off))
+    )
+    return told if told > max(slower, faster) else 0.0
 
 
 def _solve_pnp(corners: np.ndarray, config: ReceiverConfig) -> np.ndarray:

@@ -7,7 +7,13 @@ event-rate controller and the link to the host, applied in that order to the pac
 - **Event-rate controller** (``erc_hz`` over ``erc_period_us``): the sensor's ERC keeps at most
   ``erc_hz * erc_period_us`` events of each period, dropping the excess evenly over the period.
 - **Link** (``link_hz``, ``link_buffer``): the camera buffers what the link cannot send at once;
-  while that buffer is full, arriving events are lost in runs (the host sees lost packets). The
+  while that buffer is full, arriving events are lost (as iniVation's cameras count "dropped DVS
+  events on the device due to full USB buffers", libcaer's ``DVX_MUX_STATISTICS_DVS_DROPPED``).
+  The link drains continuously, and the events that share a microsecond timestamp reach it
+  spread over that microsecond in no order of their place on the sensor (drawn at random here),
+  so a full buffer thins them evenly over the view. Draining in whole-microsecond steps would
+  let each step's room go to the first events of the microsecond, which the packing orders by
+  row: the top of the view would keep its events and the bottom lose nearly all of them. The
   link only delays delivery: the surviving events keep their sensor timestamps.
 
 The stages see the events in time order, window after window, and carry their state across
@@ -65,6 +71,7 @@ class Readout:
         if s.link_hz is not None and len(events):
             keep, self._queued, self._queued_at_us = _link(
                 events["t"].astype(np.float64),
+                self._rng.random(len(events)),
                 s.link_hz * 1e-6,
                 float(s.link_buffer),
                 self._queued,
@@ -104,15 +111,27 @@ def erc_keep(
 
 
 @numba.njit(cache=True)
-def _link(t, per_us, buffer, queued, queued_at):
+def _link(t, order_key, per_us, buffer, queued, queued_at):
     """Leaky bucket: the link drains ``per_us`` events per microsecond from a buffer of
-    ``buffer`` events; an event arriving at a full buffer is lost."""
+    ``buffer`` events; an event arriving at a full buffer is lost. The ``n`` events stamped with
+    one microsecond ``t`` (sorted) arrive at ``t + (j + 0.5) / n``, ``j`` their rank by
+    ``order_key``."""
     keep = np.zeros(t.shape[0], np.bool_)
-    for k in range(t.shape[0]):
-        if t[k] > queued_at:
-            queued = max(queued - (t[k] - queued_at) * per_us, 0.0)
-            queued_at = t[k]
-        if queued + 1.0 <= buffer:
-            queued += 1.0
-            keep[k] = True
+    start = 0
+    while start < t.shape[0]:
+        stop = start + 1
+        while stop < t.shape[0] and t[stop] == t[start]:
+            stop += 1
+        n = stop - start
+        ranked = np.argsort(order_key[start:stop]) + start if n > 1 else np.arange(start, stop)
+        for j in range(n):
+            k = ranked[j]
+            arrival = t[start] + (j + 0.5) / n
+            if arrival > queued_at:
+                queued = max(queued - (arrival - queued_at) * per_us, 0.0)
+                queued_at = arrival
+            if queued + 1.0 <= buffer:
+                queued += 1.0
+                keep[k] = True
+        start = stop
     return keep, queued, queued_at

@@ -185,8 +185,8 @@ PRESETS: dict[str, SensorModel] = {
     "gen4-sunlit": replace(_GEN4, name="gen4-sunlit", lux=1000.0),
     "evk4": _EVK4,
     # The same camera set up for a screen link: bias_refr raised to v2e's CLI refractory
-    # period, and the event-rate controller below the USB link, so that the link never drops
-    # runs of events (the controller's even thinning keeps most pixels' first events).
+    # period, and the event-rate controller below the USB link, so that the link's buffer
+    # never fills (the controller alone thins, evenly within each period).
     "evk4-link": replace(_EVK4, name="evk4-link", refractory_us=500.0, erc_hz=60e6),
     # For a moving camera, whose renderer has no photoreceptor low-pass: its lag at the
     # screen's white (127 us) as a fixed latency instead.
