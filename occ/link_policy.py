@@ -14,14 +14,16 @@ How it chooses, and why:
   carries most among those whose predicted pixels per cell keep ``up_margin`` above what its
   profile needs (``min_px``; the defaults are the EVK4's in ``bench.realistic``: ``robust``
   still passes every frame at 6 px per cell, ``fast`` from 7), at most three times the cells
-  per step. It moves only on a clean window: nearly every frame passing (most of them while
-  the cells are far above what their profile needs: frames lost there are not lost to the
-  cells' size, and a denser marker loses about as many), the sensor's readout and the
-  receiver's real-time margin not near their limits, the camera not swinging, and no BER
-  before FEC that looks like the cells' own: above ``ber_up`` while the cells are less than
-  ``far_margin`` above what their profile needs, where errors grow as cells shrink. (Errors
-  at cells far above it come from motion or a full readout, which a denser marker does not
-  worsen much: they do not stop it.)
+  per step (``fast`` only while the marker moves less than ``fast_max_shift`` of a cell in
+  one frame), predicted from the fewest pixels per cell the window saw. It moves only on a
+  clean window: nearly every frame passing (most of them while the cells are far above what
+  their profile needs: frames lost there are not lost to the cells' size, and a denser
+  marker loses about as many), the sensor's readout and the receiver's real-time margin not
+  near their limits, the camera not swinging, and no BER before FEC that looks like the
+  cells' own: above ``ber_up`` while the cells are less than ``far_margin`` above what their
+  profile needs, where errors grow as cells shrink. (Errors at cells far above it come from
+  motion or a full readout, which a denser marker does not worsen much: they do not stop
+  it.)
 - Downward it moves at once: frames lost, frames failing with BER near what the code
   corrects (while every frame passes, such a BER only holds it), the lock gone, the cells
   too small for the profile or the receiver falling behind. It steps one notch: to the
@@ -133,11 +135,15 @@ class LinkWindow:
     ber: float | None
     """Mean BER before FEC over the passed frames."""
     px_per_cell: float | None
+    """The latest report's (where the camera is now)."""
     readout_share: float | None
     flow_px_per_ms: float | None
     realtime_margin: float | None
     silent_s: float
     """Time since the receiver last read a frame (the whole span if it read none)."""
+    px_per_cell_low: float | None = None
+    """The fewest pixels per cell any report of the window gave (a hand-held camera's swing
+    nearest to the limit); None: as ``px_per_cell``."""
 
     @property
     def pass_share(self) -> float:
@@ -164,10 +170,12 @@ class LinkMeter:
         rate = self.choice.frame_hz(self.display_hz) * get_profile(self.choice.profile).data_share
         bers = [s.ber for s in passed if s.ber is not None]
         # A receiver rebuilt for new settings locks again first: the frames sent before its
-        # first read are not losses (until it reads one, the whole span is its silence).
+        # first read since the change are not losses (until it reads one, the whole span is
+        # its silence).
         counted = span
-        if got and last_s is None:
-            counted = max(0.0, min(span, now_s - got[0].t_s + 1 / rate))
+        if self.samples:
+            counted = max(0.0, min(span, now_s - self.samples[0].t_s + 1 / rate))
+        pxs = [s.px_per_cell for s in got if s.px_per_cell is not None]
         return LinkWindow(
             span_s=span,
             expected=counted * rate,
@@ -179,7 +187,12 @@ class LinkMeter:
             flow_px_per_ms=_peak(got, "flow_px_per_ms"),
             realtime_margin=_latest(got, "realtime_margin"),
             silent_s=now_s - got[-1].t_s if got else span,
+            px_per_cell_low=min(pxs) if pxs else None,
         )
+
+
+def _low(window: LinkWindow) -> float | None:
+    return window.px_per_cell_low if window.px_per_cell_low is not None else window.px_per_cell
 
 
 def _latest(samples: list[FrameSample], name: str) -> float | None:
@@ -243,10 +256,13 @@ class PolicyConfig:
     """px/ms above which it does not step up: past 2 px/ms the receiver's locks go wrong now
     and then (README, known gaps), and a hand held at 1 px/ms on average swings past 1.5 at
     times, which must not stop it."""
-    fast_max_flow: float = 0.5
-    """px/ms above which ``fast`` is not chosen: it reads each bit from one transition, which
-    motion smears (``bench.closed_loop``, hand-held at 1 px/ms and 0.6 m: ``fast`` passed a
-    fraction of the frames ``robust`` passed at the same N)."""
+    fast_max_shift: float = 0.25
+    """Cells the marker may move in one of its frames for ``fast`` to be chosen (the window's
+    fastest image speed over one frame's time, in the setting's predicted pixels per cell):
+    ``fast`` reads each bit from one transition, which motion smears (``bench.closed_loop``:
+    a still camera reports no motion; a hand at 1 px/ms on average, 0.5-1.9 px/ms measured,
+    moves a 60 Hz marker a cell or more per frame, and ``fast`` passed a fraction of the
+    frames ``robust`` passed at the same N)."""
     max_cells_factor: float = 3.0
     """A step up at most multiplies the cells by this."""
     holdoff_s: float = 1.0
@@ -314,6 +330,7 @@ class LinkPolicy:
         if (
             recent.read
             and recent.span_s >= c.loss_window_s * 0.99
+            and recent.expected >= c.min_frames / 2
             and recent.pass_share < c.pass_down
         ):
             return f"losses: {recent.pass_share:.0%} of frames passed"
@@ -323,6 +340,7 @@ class LinkPolicy:
             recent.ber is not None
             and recent.ber > c.ber_down
             and recent.span_s >= c.loss_window_s * 0.99
+            and recent.expected >= c.min_frames / 2
             and recent.pass_share < c.pass_up
         ):
             return f"BER before FEC {recent.ber:.2%}, {recent.pass_share:.0%} of frames passed"
@@ -375,7 +393,7 @@ class LinkPolicy:
         c = self.config
         if window.span_s < c.judge_s or window.expected < c.min_frames:
             return f"judging ({window.span_s:.2f} of {c.judge_s:g} s)"
-        px = window.px_per_cell
+        px = _low(window)
         need = (
             c.pass_up
             if px is None or px < c.min_px[current.profile] * c.far_margin
@@ -399,13 +417,12 @@ class LinkPolicy:
         ``max_cells_factor`` times the cells; none with more cells while the errors look like
         the cells' own (``_near_limit``)."""
         c = self.config
-        px = window.px_per_cell
+        px = _low(window)
         assert px is not None
         near = self._near_limit(current, window)
         full = window.readout_share is not None and window.readout_share > c.readout_up
-        moving = (window.flow_px_per_ms or 0.0) > c.fast_max_flow
         options = []
-        for profile in AUTO_PROFILES if c.allow_fast and not moving else ("robust",):
+        for profile in AUTO_PROFILES if c.allow_fast else ("robust",):
             for hold in HOLDS:
                 if self.display_hz / hold < 1.0 or (full and hold < current.hold):
                     continue
@@ -416,6 +433,10 @@ class LinkPolicy:
                         or (near and cells > current.cells)
                         or not self._fits(choice, current, px, c.up_margin)
                         or self.is_held_off(choice, now_s)
+                        or (
+                            profile == "fast"
+                            and self._shift(choice, current, window) > c.fast_max_shift
+                        )
                     ):
                         continue
                     options.append(choice)
@@ -434,13 +455,20 @@ class LinkPolicy:
             return Decision(current, self._top_reason(current, px, now_s), False)
         return Decision(best, f"up from {current}: {px:.1f} px per cell, clean window", True)
 
+    def _shift(self, choice: LinkChoice, current: LinkChoice, window: LinkWindow) -> float:
+        """Cells the marker moves in one frame of ``choice`` at the window's fastest motion."""
+        flow, px = window.flow_px_per_ms or 0.0, _low(window)
+        assert px is not None
+        frame_ms = 1e3 / choice.frame_hz(self.display_hz)
+        return flow * frame_ms / px_at(px, current.cells, choice.cells)
+
     def _near_limit(self, current: LinkChoice, window: LinkWindow) -> bool:
         """BER before FEC above ``ber_up`` with the cells less than ``far_margin`` above what
         the profile needs: errors that grow as the cells shrink. (Errors with the cells far
         above it come from motion or a full readout, which a denser marker of the same size
         does not worsen much.)"""
         c = self.config
-        px = window.px_per_cell
+        px = _low(window)
         return (
             window.ber is not None
             and window.ber > c.ber_up

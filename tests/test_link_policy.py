@@ -82,8 +82,9 @@ def test_a_near_camera_climbs_to_what_its_pixels_allow_and_stays() -> None:
 
 
 def test_a_moving_camera_climbs_in_robust_only_and_a_swinging_one_not_at_all() -> None:
-    end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 6.0, px_at_16=20.0, flow=1.8)
-    assert reasons and end.profile == "robust" and end.cells > 16
+    for flow in (0.5, 1.8):  # a slow hand moves a 60 Hz frame of 8 px cells by a cell
+        end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 6.0, px_at_16=20.0, flow=flow)
+        assert reasons and all(c.profile == "robust" for _, c in reasons) and end.cells > 16
     end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 3.0, px_at_16=20.0, flow=3.5)
     assert end == start_choice(60.0) and not reasons
 
@@ -132,6 +133,20 @@ def test_frames_lost_at_cells_far_above_what_they_need_do_not_stop_the_climb() -
     assert reasons and end.cells > 16
 
 
+def test_a_swinging_camera_is_judged_by_its_fewest_pixels_per_cell() -> None:
+    """Reports at 20 and 17 px per cell at N = 16 by turns: the step up must fit 17."""
+    policy, meter = LinkPolicy(), LinkMeter(start_choice(60.0), 60.0, 0.0)
+    for i in range(30):
+        meter.add(FrameSample(i / 30, True, 0.0, 20.0 if i % 2 else 17.0, 0.3, 1.0, 2.0))
+    window = meter.window(1.0)
+    assert window.px_per_cell == 20.0 and window.px_per_cell_low == 17.0
+    up = policy.decide(start_choice(60.0), window, meter.window(1.0, 0.3), 1.0)
+    assert up.changed and up.choice.profile == "robust"
+    need = 6.0 * policy.config.up_margin
+    assert px_at(17.0, 16, 48) < need <= px_at(20.0, 16, 48)  # the latest alone allows 48
+    assert up.choice.cells == 40 and px_at(17.0, 16, 40) >= need
+
+
 def test_the_frames_before_a_new_lock_are_not_losses() -> None:
     meter = LinkMeter(LinkChoice("robust", 16), 60.0, 0.0)
     for i in range(12):  # it locks 0.3 s after the change, then reads every data frame
@@ -139,6 +154,12 @@ def test_the_frames_before_a_new_lock_are_not_losses() -> None:
     window = meter.window(0.3 + 12 / 30)
     assert window.pass_share == pytest.approx(1.0, abs=0.1)
     assert window.span_s == pytest.approx(0.7)
+    # The latest 0.3 s just after the lock count from it too.
+    meter = LinkMeter(LinkChoice("robust", 16), 60.0, 0.0)
+    for i in range(3):
+        meter.add(FrameSample(0.25 + i / 30, True))
+    recent = meter.window(0.35, 0.3)
+    assert recent.pass_share == pytest.approx(1.0, abs=0.3)
 
 
 def test_losses_step_down_one_notch_at_once_and_the_failed_setting_is_held_off() -> None:
