@@ -221,7 +221,8 @@ class PolicyConfig:
     judge_s: float = 0.4
     """Clean time a setting must show before the next step up."""
     min_frames: int = 8
-    """Frames a step-up judgement needs at least."""
+    """Frames a judgement needs at least: a step up's since the change, a loss's since the
+    first read after it (the first frames of a new lock must not decide alone)."""
     loss_window_s: float = 0.3
     """Losses are judged over this much of the latest time."""
     pass_up: float = 0.85
@@ -330,7 +331,7 @@ class LinkPolicy:
         if (
             recent.read
             and recent.span_s >= c.loss_window_s * 0.99
-            and recent.expected >= c.min_frames / 2
+            and recent.expected >= c.min_frames
             and recent.pass_share < c.pass_down
         ):
             return f"losses: {recent.pass_share:.0%} of frames passed"
@@ -340,7 +341,7 @@ class LinkPolicy:
             recent.ber is not None
             and recent.ber > c.ber_down
             and recent.span_s >= c.loss_window_s * 0.99
-            and recent.expected >= c.min_frames / 2
+            and recent.expected >= c.min_frames
             and recent.pass_share < c.pass_up
         ):
             return f"BER before FEC {recent.ber:.2%}, {recent.pass_share:.0%} of frames passed"

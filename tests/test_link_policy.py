@@ -160,6 +160,16 @@ def test_the_frames_before_a_new_lock_are_not_losses() -> None:
         meter.add(FrameSample(0.25 + i / 30, True))
     recent = meter.window(0.35, 0.3)
     assert recent.pass_share == pytest.approx(1.0, abs=0.3)
+    # The first frames of a new lock failing do not decide alone: losses need min_frames.
+    policy, meter = LinkPolicy(), LinkMeter(LinkChoice("robust", 48), 60.0, 0.0)
+    for i in range(4):
+        meter.add(FrameSample(0.2 + i / 30, False, px_per_cell=8.0))
+    decision = policy.decide(meter.choice, meter.window(0.35), meter.window(0.35, 0.3), 0.35)
+    assert not decision.changed
+    for i in range(4, 10):
+        meter.add(FrameSample(0.2 + i / 30, False, px_per_cell=8.0))
+    decision = policy.decide(meter.choice, meter.window(0.55), meter.window(0.55, 0.3), 0.55)
+    assert decision.changed and "losses" in decision.reason
 
 
 def test_losses_step_down_one_notch_at_once_and_the_failed_setting_is_held_off() -> None:
