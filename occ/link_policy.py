@@ -10,22 +10,32 @@ How it chooses, and why:
 - It starts where any camera reads (``START``: N = 16, ``robust``, about 60 frames a second).
 - Upward it moves by the measured margin. Pixels per cell scale with one over the marker's
   side in cells (the page fits the marker to the screen whatever N is), so the receiver's
-  pixels per cell at the present N predict them at any other; the target is the fastest
-  setting whose predicted pixels per cell keep ``up_margin`` above what its profile needs
-  (``min_px``; the defaults are the EVK4's in ``bench.realistic``: ``robust`` still passes
-  every frame at 6 px per cell, ``fast`` from 7), and at most twice the cells per step. It
-  moves only on a clean window: nearly every frame passing, BER before FEC low, the sensor's
-  readout and the receiver's real-time margin not near their limits, the camera not swinging.
-- Downward it moves at once: frames lost, BER rising, the lock gone, the readout full or the
-  receiver falling behind. It goes back to the last settings that worked (or, if the camera's
-  pixels per cell say those no longer fit, to the largest N that does), and keeps the failed
-  settings off the table for a while, twice as long each time they fail again, so it does not
-  oscillate.
+  pixels per cell at the present N predict them at any other; the target is the setting that
+  carries most among those whose predicted pixels per cell keep ``up_margin`` above what its
+  profile needs (``min_px``; the defaults are the EVK4's in ``bench.realistic``: ``robust``
+  still passes every frame at 6 px per cell, ``fast`` from 7), at most three times the cells
+  per step (``fast`` only while the marker moves less than ``fast_max_shift`` of a cell in
+  one frame), predicted from the fewest pixels per cell the window saw. It moves only on a
+  clean window: nearly every frame passing (most of them while the cells are far above what
+  their profile needs: frames lost there are not lost to the cells' size, and a denser
+  marker loses about as many), the sensor's readout and the receiver's real-time margin not
+  near their limits, the camera not swinging, and no BER before FEC that looks like the
+  cells' own: above ``ber_up`` while the cells are less than ``far_margin`` above what their
+  profile needs, where errors grow as cells shrink. (Errors at cells far above it come from
+  motion or a full readout, which a denser marker does not worsen much: they do not stop
+  it.)
+- Downward it moves at once: frames lost, frames failing with BER near what the code
+  corrects (while every frame passes, such a BER only holds it), the lock gone, the cells
+  too small for the profile or the receiver falling behind. It steps one notch: to the
+  nearest lower setting (in what it carries; no more cells, the same profile or ``robust``)
+  whose predicted pixels per cell still fit, so a burst costs one notch, not the climb. The
+  setting that failed is held off for ``holdoff_s``, doubled each time it fails again sooner
+  after its return than it was held off, so the link neither retries a setting beyond the
+  camera at once nor stays below one that fails only now and then.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from functools import cache
 
@@ -125,11 +135,15 @@ class LinkWindow:
     ber: float | None
     """Mean BER before FEC over the passed frames."""
     px_per_cell: float | None
+    """The latest report's (where the camera is now)."""
     readout_share: float | None
     flow_px_per_ms: float | None
     realtime_margin: float | None
     silent_s: float
     """Time since the receiver last read a frame (the whole span if it read none)."""
+    px_per_cell_low: float | None = None
+    """The fewest pixels per cell any report of the window gave (a hand-held camera's swing
+    nearest to the limit); None: as ``px_per_cell``."""
 
     @property
     def pass_share(self) -> float:
@@ -156,10 +170,12 @@ class LinkMeter:
         rate = self.choice.frame_hz(self.display_hz) * get_profile(self.choice.profile).data_share
         bers = [s.ber for s in passed if s.ber is not None]
         # A receiver rebuilt for new settings locks again first: the frames sent before its
-        # first read are not losses (until it reads one, the whole span is its silence).
+        # first read since the change are not losses (until it reads one, the whole span is
+        # its silence).
         counted = span
-        if got and last_s is None:
-            counted = max(0.0, min(span, now_s - got[0].t_s + 1 / rate))
+        if self.samples:
+            counted = max(0.0, min(span, now_s - self.samples[0].t_s + 1 / rate))
+        pxs = [s.px_per_cell for s in got if s.px_per_cell is not None]
         return LinkWindow(
             span_s=span,
             expected=counted * rate,
@@ -171,7 +187,12 @@ class LinkMeter:
             flow_px_per_ms=_peak(got, "flow_px_per_ms"),
             realtime_margin=_latest(got, "realtime_margin"),
             silent_s=now_s - got[-1].t_s if got else span,
+            px_per_cell_low=min(pxs) if pxs else None,
         )
+
+
+def _low(window: LinkWindow) -> float | None:
+    return window.px_per_cell_low if window.px_per_cell_low is not None else window.px_per_cell
 
 
 def _latest(samples: list[FrameSample], name: str) -> float | None:
@@ -190,29 +211,37 @@ class PolicyConfig:
     """Pixels per cell each profile needs (the EVK4's, ``bench.realistic``)."""
     up_margin: float = 1.03
     """Predicted pixels per cell kept this far above ``min_px`` when stepping up (little:
-    a step that fails costs one step back and a backoff, a margin held for ever costs
+    a step that fails costs one notch back and a hold-off, a margin held for ever costs
     goodput)."""
+    far_margin: float = 1.25
+    """Pixels per cell this far above ``min_px`` are far from the limit: errors seen there come
+    from elsewhere than the cells' size (``_near_limit``)."""
     settle_s: float = 0.25
     """After a change, time before any loss counts: the receiver rebuilds and locks again."""
     judge_s: float = 0.4
     """Clean time a setting must show before the next step up."""
     min_frames: int = 8
-    """Frames a step-up judgement needs at least."""
+    """Frames a judgement needs at least: a step up's since the change, a loss's since the
+    first read after it (the first frames of a new lock must not decide alone)."""
     loss_window_s: float = 0.3
     """Losses are judged over this much of the latest time."""
     pass_up: float = 0.85
     """Share of the data frames sent that must pass to step up..."""
     pass_down: float = 0.5
     """...and below which the link steps down at once."""
+    pass_up_far: float = 0.6
+    """Share that must pass to step up while the cells are ``far_margin`` above what their
+    profile needs: the frames lost there are not lost to the cells' size (a full readout, a
+    moving camera), so a denser marker of the same size loses about as many and carries more
+    in each."""
     ber_up: float = 0.004
-    """BER before FEC above which a step up must keep ``ber_px_margin`` over ``min_px``: near
-    the pixels a profile needs, errors grow as cells shrink; well above them (large cells
-    under a moving camera: 1.1-1.4% at 25 px per cell, hand-held at 0.6 m) they come from
-    elsewhere, and a denser marker does not add many."""
-    ber_px_margin: float = 1.3
+    """BER before FEC above which, with the cells less than ``far_margin`` above what their
+    profile needs, it does not step to more cells."""
     ber_down: float = 0.015
-    """BER before FEC above which it steps down: the inner code corrects about 1% of bits
-    (``LinkProfile.parity_fraction``), so this is losses about to come."""
+    """BER before FEC near what the code corrects: the inner code corrects about 1% of
+    independent bit errors (``LinkProfile.parity_fraction``), more with erasures. Above it the
+    link does not step up, and steps down if frames also fail (fewer than ``pass_up`` of
+    them pass): their errors are then why."""
     lost_s: float = 0.35
     """No frame read for this long after settling: the receiver lost the marker."""
     readout_up: float = 0.9
@@ -228,14 +257,21 @@ class PolicyConfig:
     """px/ms above which it does not step up: past 2 px/ms the receiver's locks go wrong now
     and then (README, known gaps), and a hand held at 1 px/ms on average swings past 1.5 at
     times, which must not stop it."""
-    fast_max_flow: float = 0.5
-    """px/ms above which ``fast`` is not chosen: it reads each bit from one transition, which
-    motion smears (``bench.closed_loop``, hand-held at 1 px/ms and 0.6 m: ``fast`` passed a
-    fraction of the frames ``robust`` passed at the same N)."""
+    fast_max_shift: float = 0.25
+    """Cells the marker may move in one of its frames for ``fast`` to be chosen (the window's
+    fastest image speed over one frame's time, in the setting's predicted pixels per cell):
+    ``fast`` reads each bit from one transition, which motion smears (``bench.closed_loop``:
+    a still camera reports no motion; a hand at 1 px/ms on average, 0.5-1.9 px/ms measured,
+    moves a 60 Hz marker a cell or more per frame, and ``fast`` passed a fraction of the
+    frames ``robust`` passed at the same N)."""
     max_cells_factor: float = 3.0
     """A step up at most multiplies the cells by this."""
-    backoff_s: float = 5.0
-    """Settings that failed are not tried again for this long, doubled at each failure."""
+    holdoff_s: float = 1.0
+    """A setting that failed is not chosen again for this long. Each time it fails again
+    sooner after going back on screen than it was held off, its hold-off doubles (it fails
+    more often than it works); when it lasts longer than that, the hold-off starts over (a
+    burst, in a setting that works)."""
+    max_holdoff_s: float = 60.0
     allow_fast: bool = True
 
 
@@ -247,18 +283,24 @@ class Decision:
     changed: bool
 
 
+@dataclass(frozen=True)
+class HoldOff:
+    """A setting that failed: not chosen before ``until_s``; ``span_s``: its last hold-off."""
+
+    until_s: float
+    span_s: float
+
+
 @dataclass
 class LinkPolicy:
     """One receiver's controller. ``decide`` is called with the window of the settings on screen
-    (``current``) whenever new reports came; it remembers the settings that worked (to fall
-    back to) and those that failed (kept off the table for a while)."""
+    (``current``) whenever new reports came; it remembers the settings that failed and holds
+    them off for a while."""
 
     display_hz: float = NOMINAL_HZ
     config: PolicyConfig = field(default_factory=PolicyConfig)
-    worked: list[LinkChoice] = field(default_factory=list)
-    """Settings that passed a clean window, in the order stepped through."""
-    banned: dict[LinkChoice, tuple[float, float]] = field(default_factory=dict)
-    """Failed settings -> (until when, the next backoff)."""
+    held_off: dict[LinkChoice, HoldOff] = field(default_factory=dict)
+    """Settings that failed, and until when they are not chosen."""
 
     def decide(
         self, current: LinkChoice, window: LinkWindow, recent: LinkWindow, now_s: float
@@ -268,12 +310,14 @@ class LinkPolicy:
         trouble = self._trouble(window, recent, current)
         if trouble:
             return self._step_down(current, window, now_s, trouble)
-        held = self._why_hold(window)
+        held = self._why_hold(current, window, recent)
         if held:
             return Decision(current, held, False)
-        if current not in self.worked:
-            self.worked.append(current)
         return self._step_up(current, window, now_s)
+
+    def is_held_off(self, choice: LinkChoice, now_s: float) -> bool:
+        held = self.held_off.get(choice)
+        return held is not None and held.until_s > now_s
 
     # --- down ---------------------------------------------------------------------------
     def _trouble(self, window: LinkWindow, recent: LinkWindow, current: LinkChoice) -> str:
@@ -287,40 +331,79 @@ class LinkPolicy:
         if (
             recent.read
             and recent.span_s >= c.loss_window_s * 0.99
+            and recent.expected >= c.min_frames
             and recent.pass_share < c.pass_down
         ):
             return f"losses: {recent.pass_share:.0%} of frames passed"
-        if recent.ber is not None and recent.ber > c.ber_down:
-            return f"BER before FEC {recent.ber:.2%}"
+        # High BER while every frame still passes costs nothing yet (it holds the step up);
+        # with frames starting to fail, it says they fail for their errors.
+        if (
+            recent.ber is not None
+            and recent.ber > c.ber_down
+            and recent.span_s >= c.loss_window_s * 0.99
+            and recent.expected >= c.min_frames
+            and recent.pass_share < c.pass_up
+        ):
+            return f"BER before FEC {recent.ber:.2%}, {recent.pass_share:.0%} of frames passed"
         px = window.px_per_cell
         if px is not None and px < c.min_px[current.profile] * 0.85:
             return f"{px:.1f} px per cell, {current.profile} needs {c.min_px[current.profile]:g}"
         return ""
 
+    def _hold_off(self, current: LinkChoice, on_screen_s: float, now_s: float) -> float:
+        """Hold ``current`` off after it failed ``on_screen_s`` after going on screen."""
+        c = self.config
+        last = self.held_off.get(current)
+        span = c.holdoff_s
+        if last is not None and on_screen_s < last.span_s:
+            span = min(last.span_s * 2, c.max_holdoff_s)
+        self.held_off[current] = HoldOff(now_s + span, span)
+        return span
+
     def _step_down(
         self, current: LinkChoice, window: LinkWindow, now_s: float, trouble: str
     ) -> Decision:
+        """To the nearest lower setting (in what it carries; no more cells, the same profile
+        or ``robust``, the same frame rate) that is not held off and whose predicted pixels per
+        cell still fit its profile; the start if none does."""
         start = start_choice(self.display_hz)
-        if current != start:
-            _, backoff = self.banned.get(current, (0.0, self.config.backoff_s))
-            self.banned[current] = (now_s + backoff, backoff * 2)
-        while self.worked and self.worked[-1] == current:
-            self.worked.pop()
-        target = self.worked.pop() if self.worked else start
-        px = window.px_per_cell
-        if px is not None and not self._fits(target, current, px, 1.0):
-            target = self._largest_fit(current, px, "robust", target.hold) or start
-        if target == current:
+        if current == start:
             return Decision(current, f"{trouble}; nothing lower to go to", False)
-        return Decision(target, f"down from {current}: {trouble}", True)
+        span = self._hold_off(current, window.span_s, now_s)
+        px = window.px_per_cell
+        bps = current.payload_bps(self.display_hz)
+        lower = [
+            choice
+            for profile in dict.fromkeys((current.profile, "robust"))
+            for cells in CELLS_LADDER
+            if cells <= current.cells
+            and (choice := replace(current, profile=profile, cells=cells)).payload_bps(
+                self.display_hz
+            )
+            < bps
+            and not self.is_held_off(choice, now_s)
+            and (px is None or self._fits(choice, current, px, 1.0))
+        ]
+        target = max(lower, key=lambda o: o.payload_bps(self.display_hz), default=start)
+        return Decision(
+            target, f"down from {current}: {trouble} (held off {span:g} s)", target != current
+        )
 
     # --- up -----------------------------------------------------------------------------
-    def _why_hold(self, window: LinkWindow) -> str:
+    def _why_hold(self, current: LinkChoice, window: LinkWindow, recent: LinkWindow) -> str:
         c = self.config
         if window.span_s < c.judge_s or window.expected < c.min_frames:
             return f"judging ({window.span_s:.2f} of {c.judge_s:g} s)"
-        if window.pass_share < c.pass_up:
-            return f"{window.pass_share:.0%} of frames passed (stepping up needs {c.pass_up:.0%})"
+        px = _low(window)
+        need = (
+            c.pass_up
+            if px is None or px < c.min_px[current.profile] * c.far_margin
+            else c.pass_up_far
+        )
+        if window.pass_share < need:
+            return f"{window.pass_share:.0%} of frames passed (stepping up needs {need:.0%})"
+        if recent.ber is not None and recent.ber > c.ber_down:
+            return f"BER before FEC {recent.ber:.2%}, near what the code corrects"
         if window.realtime_margin is not None and window.realtime_margin < c.margin_up:
             return f"receiver real-time margin {window.realtime_margin:.2f}"
         if window.flow_px_per_ms is not None and window.flow_px_per_ms > c.max_flow_up:
@@ -330,66 +413,82 @@ class LinkPolicy:
         return ""
 
     def _step_up(self, current: LinkChoice, window: LinkWindow, now_s: float) -> Decision:
-        px = window.px_per_cell
+        """To the setting that carries most among those whose predicted pixels per cell keep
+        ``up_margin`` over what their profile needs, not held off, at most
+        ``max_cells_factor`` times the cells; none with more cells while the errors look like
+        the cells' own (``_near_limit``)."""
+        c = self.config
+        px = _low(window)
         assert px is not None
-        margin = self.config.up_margin
-        if window.ber is not None and window.ber > self.config.ber_up:
-            margin = max(margin, self.config.ber_px_margin)
+        near = self._near_limit(current, window)
+        full = window.readout_share is not None and window.readout_share > c.readout_up
         options = []
-        full = window.readout_share is not None and window.readout_share > self.config.readout_up
-        moving = (window.flow_px_per_ms or 0.0) > self.config.fast_max_flow
-        for profile in AUTO_PROFILES if self.config.allow_fast and not moving else ("robust",):
+        for profile in AUTO_PROFILES if c.allow_fast else ("robust",):
             for hold in HOLDS:
                 if self.display_hz / hold < 1.0 or (full and hold < current.hold):
                     continue
-                fit = self._largest_fit(current, px, profile, hold, margin, now_s)
-                if fit is not None:
-                    options.append(fit)
+                for cells in CELLS_LADDER:
+                    choice = replace(current, profile=profile, cells=cells, hold=hold)
+                    if (
+                        cells > current.cells * c.max_cells_factor
+                        or (near and cells > current.cells)
+                        or not self._fits(choice, current, px, c.up_margin)
+                        or self.is_held_off(choice, now_s)
+                        or (
+                            profile == "fast"
+                            and self._shift(choice, current, window) > c.fast_max_shift
+                        )
+                    ):
+                        continue
+                    options.append(choice)
         best = max(options, key=lambda o: o.payload_bps(self.display_hz), default=None)
         if best is None or best.payload_bps(self.display_hz) <= current.payload_bps(
             self.display_hz
         ):
-            if margin > self.config.up_margin:
+            if near:
+                need = c.min_px[current.profile]
                 return Decision(
                     current,
-                    f"BER before FEC {window.ber:.2%}: a step up needs its cells "
-                    f"{margin:g}x the pixels its profile needs",
+                    f"BER before FEC {window.ber:.2%} at {px:.1f} px per cell, near the "
+                    f"{need:g} {current.profile} needs: smaller cells would add errors",
                     False,
                 )
-            need = self.config.min_px[current.profile]
-            return Decision(current, self._top_reason(current, px, need), False)
+            return Decision(current, self._top_reason(current, px, now_s), False)
         return Decision(best, f"up from {current}: {px:.1f} px per cell, clean window", True)
 
-    def _top_reason(self, current: LinkChoice, px: float, need: float) -> str:
+    def _shift(self, choice: LinkChoice, current: LinkChoice, window: LinkWindow) -> float:
+        """Cells the marker moves in one frame of ``choice`` at the window's fastest motion."""
+        flow, px = window.flow_px_per_ms or 0.0, _low(window)
+        assert px is not None
+        frame_ms = 1e3 / choice.frame_hz(self.display_hz)
+        return flow * frame_ms / px_at(px, current.cells, choice.cells)
+
+    def _near_limit(self, current: LinkChoice, window: LinkWindow) -> bool:
+        """BER before FEC above ``ber_up`` with the cells less than ``far_margin`` above what
+        the profile needs: errors that grow as the cells shrink. (Errors with the cells far
+        above it come from motion or a full readout, which a denser marker of the same size
+        does not worsen much.)"""
+        c = self.config
+        px = _low(window)
+        return (
+            window.ber is not None
+            and window.ber > c.ber_up
+            and px is not None
+            and px < c.min_px[current.profile] * c.far_margin
+        )
+
+    def _top_reason(self, current: LinkChoice, px: float, now_s: float) -> str:
         up = [n for n in CELLS_LADDER if n > current.cells]
         if not up:
             return "at the densest marker"
-        next_px = px_at(px, current.cells, up[0])
+        nxt = replace(current, cells=up[0])
+        if self.is_held_off(nxt, now_s):
+            return f"{nxt} failed: held off for {self.held_off[nxt].until_s - now_s:.1f} s more"
+        need = self.config.min_px[current.profile] * self.config.up_margin
         return (
-            f"px per cell: {px:.1f} now, {next_px:.1f} at N = {up[0]}; "
-            f"{current.profile} needs {need * self.config.up_margin:.1f}"
+            f"px per cell: {px:.1f} now, {px_at(px, current.cells, up[0]):.1f} at N = {up[0]}; "
+            f"{current.profile} needs {need:.1f}"
         )
 
     def _fits(self, choice: LinkChoice, current: LinkChoice, px: float, margin: float) -> bool:
         return px_at(px, current.cells, choice.cells) >= self.config.min_px[choice.profile] * margin
-
-    def _largest_fit(
-        self,
-        current: LinkChoice,
-        px: float,
-        profile: str,
-        hold: int,
-        margin: float = 1.0,
-        now_s: float = -math.inf,
-    ) -> LinkChoice | None:
-        """The largest N whose predicted pixels per cell fit ``profile`` (at most
-        ``max_cells_factor`` times the present N), not banned; None if none fits."""
-        most = current.cells * self.config.max_cells_factor
-        for cells in reversed(CELLS_LADDER):
-            choice = replace(current, profile=profile, cells=cells, hold=hold)
-            if cells > most or not self._fits(choice, current, px, margin):
-                continue
-            if self.banned.get(choice, (-math.inf, 0.0))[0] > now_s:
-                continue
-            return choice
-        return None

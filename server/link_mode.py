@@ -27,10 +27,11 @@ from eventocc.occ.link_policy import (
 from eventocc.occ.report import FrameStats
 
 MODES = ("fixed", "auto")
-LIVE_POLICY = PolicyConfig(settle_s=2.0, judge_s=2.0, lost_s=1.5, loss_window_s=1.0)
+LIVE_POLICY = PolicyConfig(settle_s=2.0, judge_s=2.0, lost_s=1.5, loss_window_s=1.0, holdoff_s=5.0)
 """A live loop is slower than the simulated one: the page takes up a choice at its next status
 report (4 a second in ``auto``), a receiver at its next look at the page's status, and then it
-must lock again; the windows are longer so that this is not taken for losses."""
+must lock again; the windows are longer so that this is not taken for losses, and a setting
+that failed is held off for as many of them as in the simulated loop."""
 VERIFIED_WITHIN_S = 10.0
 """A receiver counts as reading the link while a frame of it passed this recently."""
 HISTORY = 120

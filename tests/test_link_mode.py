@@ -167,17 +167,17 @@ def test_packed_frames_need_a_fountain_profile(client: TestClient) -> None:
 
 
 def test_frames_a_slow_source_skipped_are_not_counted_as_losses() -> None:
-    """A virtual camera simulating at 0.7x real time shows the receiver 70% of the frames."""
+    """A virtual camera simulating at 0.5x real time shows the receiver half the frames."""
     climbed = {}
-    for speed in (None, 0.7):
+    for speed in (None, 0.5):
         mode = LinkMode()
         mode.set_mode("auto", None, 0.0)
         t, i = 0.0, 0
         while t < 6.0:
             t += 1 / 30
             i += 1
-            if i % 10 < 7:  # 7 frames in 10 reach the receiver, every one of them passes
+            if i % 10 < 5:  # 5 frames in 10 reach the receiver, every one of them passes
                 mode.on_frame("sim", frame(mode.choice, 24.0), t)
                 mode.on_health("sim", speed)
         climbed[speed] = mode.choice.cells > 16
-    assert climbed == {None: False, 0.7: True}
+    assert climbed == {None: False, 0.5: True}
