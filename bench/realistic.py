@@ -322,7 +322,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     results = args.out / "results" / "realistic.json"
     if args.report_only:
-        _write(args.out, [Point(**d) for d in json.loads(results.read_text())])
+        _write(args.out, [Point(**d) for d in json.loads(results.read_text())], _command(args))
         return
     calls = [
         (preset, profile, rate, px)
@@ -352,16 +352,35 @@ def main(argv: list[str] | None = None) -> None:
         return
     results.parent.mkdir(parents=True, exist_ok=True)
     results.write_text(json.dumps([p.to_dict() for p in points], indent=1))
-    _write(args.out, points)
+    _write(args.out, points, _command(args))
 
 
-def _write(out: Path, points: list[Point]) -> None:
+def _command(args: argparse.Namespace) -> str:
+    """The command line of this run, its options other than the defaults and ``--out``."""
+    words = ["NUMBA_NUM_THREADS=1 nice .venv/bin/python -m bench.realistic"]
+    for name, default in (
+        ("px", PX_PER_CELL),
+        ("presets", PRESETS),
+        ("profiles", PROFILES),
+        ("rates", RATES),
+    ):
+        value = getattr(args, name)
+        if list(value) != list(default):
+            words.append(
+                f"--{name} " + " ".join(f"{v:g}" if isinstance(v, float) else v for v in value)
+            )
+    words.append(f"--jobs {args.jobs}")
+    return " ".join(words)
+
+
+def _write(out: Path, points: list[Point], command: str) -> None:
     plot(points, out / "realistic.png")
     write_section(
         "realistic",
         "A camera that does not flatter us: BER and goodput against pixels per cell",
-        "NUMBA_NUM_THREADS=1 nice .venv/bin/python -m bench.realistic --jobs 1",
+        command,
         report(points),
+        out / "BENCHMARKS.md",
     )
 
 
