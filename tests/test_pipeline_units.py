@@ -14,7 +14,13 @@ from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.events import make_events
 from eventocc.receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from eventocc.receiver.pipeline.config import DecoderParams, FilterParams, ReceiverConfig
-from eventocc.receiver.pipeline.decoder import CellReader, FrameClock, cell_side_px, read_stride
+from eventocc.receiver.pipeline.decoder import (
+    CellReader,
+    FrameClock,
+    cell_side_px,
+    on_events_per_pixel,
+    read_stride,
+)
 from eventocc.receiver.pipeline.detector import (
     MarkerNotFound,
     _binned_period_match,
@@ -297,6 +303,32 @@ def test_large_cells_are_read_with_a_pixel_stride(px_per_cell, want, stride):
     assert (
         read_stride(config, cell_side_px(config, behind)) == 1 and cell_side_px(config, behind) == 0
     )
+
+
+@pytest.mark.parametrize(("on_per_pixel", "stride"), [(None, 3), (8.0, 3), (3.0, 2), (1.5, 1)])
+def test_a_thinned_readout_is_read_with_a_finer_stride(on_per_pixel, stride):
+    # 24 px per cell keep 3 x 3 blocks to 8 px per side; a pixel firing half as often as a
+    # dense sensor's says half as much, so it takes a finer stride to read the same.
+    config = ReceiverConfig(CameraModel(346, 260, K), cells=16)
+    assert read_stride(config, 24.0, on_per_pixel) == stride
+
+
+def test_on_events_per_pixel_counts_the_lit_half_of_the_locator_per_blink():
+    # 40 x 40 px locator, 10 blinks at 60 Hz over 20 x 40 lit pixels, 3 ON events each, plus
+    # OFF events and ON events outside it, which do not count.
+    rng = np.random.default_rng(0)
+    xs, ys = np.meshgrid(np.arange(100, 120), np.arange(50, 90))
+    lit = np.repeat(np.c_[xs.ravel(), ys.ravel()], 30, axis=0)
+    t = np.sort(rng.integers(0, 10 * 16_667, len(lit)))
+    ev = make_events(
+        np.r_[t, t[:100], t[:100]],
+        np.r_[lit[:, 0], lit[:100, 0], np.full(100, 300)],
+        np.r_[lit[:, 1], lit[:100, 1], np.full(100, 200)],
+        np.r_[np.ones(len(t)), -np.ones(100), np.ones(100)],
+    )
+    ev = ev[np.argsort(ev["t"], kind="stable")]
+    corners = np.array([[99.5, 49.5], [139.5, 49.5], [139.5, 89.5], [99.5, 89.5]])
+    assert on_events_per_pixel(ev, corners, 60.0) == pytest.approx(3.0, rel=0.1)
 
 
 def test_cells_read_against_the_locator_ring_and_score_its_contrast():

@@ -220,6 +220,11 @@ class DecoderParams:
     camera 0.6 m from an N = 16 marker sees 22 px per cell, where a stride of 3 cuts the
     triage's memory traffic ninefold; coarser strides lose bits under fast motion. None: every
     pixel."""
+    dense_on_per_pixel: float = 4.0
+    """ON events per lit pixel per transition from which a read pixel says as much as a dense
+    sensor's; below it the stride shrinks in proportion (``decoder.read_stride``). A readout
+    that keeps a quarter of the events leaves 1-2, and each pixel then misses bursts or times
+    them by a late event."""
     late_mark_px_per_cell: float | None = 12.0
     """Cells at least this wide (pixels, at the lock) are also read from each pixel's first burst
     after the middle of the frame's window (``EventTriage.marks_us``). The scan-out switches the
@@ -248,6 +253,10 @@ class DecoderParams:
         if self.read_px_per_cell is not None and self.read_px_per_cell <= 0:
             raise ValueError(
                 f"decoder read_px_per_cell must be positive or None, got {self.read_px_per_cell}"
+            )
+        if self.dense_on_per_pixel <= 0:
+            raise ValueError(
+                f"decoder dense_on_per_pixel must be positive, got {self.dense_on_per_pixel}"
             )
         if self.turn_frames < 1:
             raise ValueError(f"decoder turn_frames must be at least 1, got {self.turn_frames}")

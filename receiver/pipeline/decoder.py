@@ -45,6 +45,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numba
 import numpy as np
 
@@ -358,13 +359,34 @@ def cell_side_px(config: ReceiverConfig, T_cam_world: np.ndarray) -> float:
     return float(np.hypot(*(corners - np.roll(corners, 1, axis=0)).T).min() / geo.locator_side)
 
 
-def read_stride(config: ReceiverConfig, side_px: float) -> int:
+def read_stride(config: ReceiverConfig, side_px: float, on_per_pixel: float | None = None) -> int:
     """The pixel stride (``EventTriage.reset``) that cells ``side_px`` wide (``cell_side_px``)
-    can be read with: the largest leaving ``decoder.read_px_per_cell`` pixels per cell side."""
+    can be read with: the largest leaving ``decoder.read_px_per_cell`` pixels per cell side,
+    shrunk in proportion where a lit pixel fires fewer than ``decoder.dense_on_per_pixel`` ON
+    events per transition (``on_per_pixel``, ``on_events_per_pixel``): a readout that thins
+    the events (a rate controller, a full link) leaves each read pixel less to say."""
     want = config.decoder.read_px_per_cell
     if want is None or not side_px:
         return 1
-    return max(int(side_px // want), 1)
+    thinned = 1.0 if on_per_pixel is None else on_per_pixel / config.decoder.dense_on_per_pixel
+    return max(int(side_px / want * min(max(thinned, 0.0), 1.0)), 1)
+
+
+def on_events_per_pixel(events: np.ndarray, corners_px: np.ndarray, blink_hz: float) -> float:
+    """ON events per lit pixel per blink inside the locator ``corners_px`` (sensor pixels), from
+    ``events`` (time-ordered, whole blinks), half the cells taken as lit."""
+    quad = np.round(corners_px).astype(np.int32)
+    x0, y0 = quad.min(axis=0)
+    x1, y1 = quad.max(axis=0) + 1
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillConvexPoly(mask, quad - [x0, y0], 1)
+    on = events[events["p"] > 0]
+    x, y = on["x"].astype(np.int64) - x0, on["y"].astype(np.int64) - y0
+    inside = (x >= 0) & (y >= 0) & (x < mask.shape[1]) & (y < mask.shape[0])
+    count = np.count_nonzero(mask[y[inside], x[inside]])
+    span_us = int(events["t"][-1]) - int(events["t"][0]) if len(events) else 0
+    blinks = max(span_us * blink_hz / 1e6, 1.0)
+    return count / max(0.5 * np.count_nonzero(mask) * blinks, 1.0)
 
 
 class CellReader:

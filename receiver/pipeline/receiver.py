@@ -47,7 +47,13 @@ from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import ReceivedMessage, StreamDecoder
 from eventocc.receiver.pipeline.buffer import EventBuffer, to_columns
 from eventocc.receiver.pipeline.config import ReceiverConfig
-from eventocc.receiver.pipeline.decoder import CellReader, FrameRead, cell_side_px, read_stride
+from eventocc.receiver.pipeline.decoder import (
+    CellReader,
+    FrameRead,
+    cell_side_px,
+    on_events_per_pixel,
+    read_stride,
+)
 from eventocc.receiver.pipeline.detector import Detection, MarkerNotFound, detect, nearest_turn
 from eventocc.receiver.pipeline.filters import EventFilter
 from eventocc.receiver.pipeline.pose import PoseHistory, project_ideal
@@ -62,6 +68,9 @@ DETECTING, TRACKING = "detecting", "tracking"
 _SEGMENT_US = 2000
 """Period of the event-time grid that tracking cuts the stream on: each piece is triaged with one
 tracker mask (the edges move little meanwhile)."""
+_DENSITY_BLINKS = 4
+"""Blinks before the lock whose events tell how densely the marker's pixels fire
+(``decoder.on_events_per_pixel``)."""
 
 
 @dataclass(frozen=True)
@@ -330,7 +339,9 @@ class Receiver:
                 if tracker.capture(recent["xu"], recent["yu"], now):
                     T = tracker.T_cam_world
         side = self.cell_px = cell_side_px(self.config, T)
-        stride = read_stride(self.config, side)
+        blinks = self._buffer.between(now - _DENSITY_BLINKS * 1e6 / found.blink_hz, now)
+        density = on_events_per_pixel(blinks, found.corners_px, found.blink_hz)
+        stride = read_stride(self.config, side, density)
         late, q = self.config.decoder.late_mark_px_per_cell, self.config.decoder
         framed = get_profile(self.config.profile).framed
         # Frames inside the detection window are still buffered: read them too. Under motion the
