@@ -8,8 +8,8 @@ few hundred pixels across, a pixel of such spread costs centimetres of pose.
 The locator measures its own spread: each lit dash of its dashed top row and right column lies
 between two dark ones, so its lit width is a cell plus the spread on both sides. Each outer edge
 of a lit border cell sits where the lit length from the cell's centre outwards says, less that
-spread; every length is a share of the cell's own lit level, since events thin out across the
-marker (vignetting, the scan-out's phase gate). Straight lines through the border cells' edges,
+spread; every length is a share of the lit level along that edge, since events thin out across
+the marker (vignetting, the scan-out's phase gate). Straight lines through the border cells' edges,
 in ideal pixels, meet at the corners.
 """
 
@@ -54,12 +54,15 @@ class _Grid:
         p = uv @ self.H[:, :2].T + self.H[:, 2]
         return p[..., :2] / p[..., 2:]
 
+    def sensor(self, ideal: np.ndarray) -> np.ndarray:
+        """Distorted (sensor) pixels of ideal pixels (..., 2)."""
+        cam = self.camera
+        xy = (ideal - cam.K[:2, 2]) / cam.K[[0, 1], [0, 1]]
+        return cam.project(np.concatenate([xy, np.ones_like(xy[..., :1])], -1))
+
     def sample(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """``image`` (float32) at grid points ``uv`` (..., 2), bilinear, 0 outside."""
-        cam = self.camera
-        xy = (self.ideal(uv) - cam.K[:2, 2]) / cam.K[[0, 1], [0, 1]]
-        px = cam.project(np.concatenate([xy, np.ones_like(xy[..., :1])], -1)).astype(np.float32)
-        flat = px.reshape(-1, 1, 2)
+        flat = self.sensor(self.ideal(uv)).astype(np.float32).reshape(-1, 1, 2)
         out = cv2.remap(image, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderValue=0)
         return out.reshape(uv.shape[:-1])
 
@@ -69,8 +72,8 @@ def refine_corners(
 ) -> np.ndarray:
     """(4, 2) corners (TL, TR, BR, BL in canonical order, distorted pixels) of the inner
     locator, refined from the rough ``corners`` on ``lit`` (1 where a pixel fires with the
-    bursts); the rough ones where the image cannot say (too few cells seen, or a move of
-    more than half a cell)."""
+    bursts); the rough ones where the image cannot say (too few border cells seen, their edges
+    off straight lines, or a move of more than half a cell)."""
     image = np.ascontiguousarray(lit, np.float32)
     side = geometry.locator_side
     cell_px = np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).min() / side
@@ -86,6 +89,7 @@ def refine_corners(
 def _fit(
     grid: _Grid, image: np.ndarray, geometry: MarkerGeometry, cell_px: float
 ) -> np.ndarray | None:
+    """The corners that the border cells' edges on ``image`` give through ``grid``, or None."""
     side, loc = geometry.locator_side, geometry.inner_locator
     dark = _dark_level(grid, image, geometry)
     spread = _spread(grid, image, loc, dark)
@@ -116,10 +120,7 @@ def _fit(
     meet = np.cross(np.roll(lines, 1, axis=0), lines)
     if np.any(np.abs(meet[:, 2]) < 1e-9):
         return None
-    ideal = meet[:, :2] / meet[:, 2:]
-    cam = grid.camera
-    xy = (ideal - cam.K[:2, 2]) / cam.K[[0, 1], [0, 1]]
-    return cam.project(np.c_[xy, np.ones(4)])
+    return grid.sensor(meet[:, :2] / meet[:, 2:])
 
 
 def _smooth_level(level: np.ndarray) -> np.ndarray | None:
