@@ -86,9 +86,26 @@ def test_quadrilateral_orders_corners_clockwise_and_checks_shape():
     x, y = quad[:, 0], quad[:, 1]
     assert np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0
     cfg = ReceiverConfig(CameraModel(346, 260, K))
-    check_quadrilateral(quad, cfg.detector)
+    check_quadrilateral(quad, cfg.detector, cfg.camera)
     with pytest.raises(MarkerNotFound, match="not square"):
-        check_quadrilateral(np.array([[0, 0], [100, 0], [100, 20], [0, 20.0]]), cfg.detector)
+        check_quadrilateral(
+            np.array([[0, 0], [100, 0], [100, 20], [0, 20.0]]), cfg.detector, cfg.camera
+        )
+
+
+@pytest.mark.parametrize("view_deg", [0.0, 30.0, 45.0, 60.0])
+def test_a_square_passes_at_any_view_a_skewed_quadrilateral_does_not(view_deg):
+    # A near square seen at 45-60 deg shows image corners far from right angles (cos > 0.4),
+    # which the camera's intrinsics undo; an image parallelogram of the same size does not pass.
+    cam = CameraModel(640, 480, np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]))
+    cfg = ReceiverConfig(cam)
+    turn = Rotation.from_euler("xy", [view_deg, 20.0], degrees=True).as_matrix()
+    square = np.array([[-0.1, -0.1, 0], [0.1, -0.1, 0], [0.1, 0.1, 0], [-0.1, 0.1, 0]])
+    quad = cam.project(square @ turn.T + [0.05, 0.03, 0.35])
+    check_quadrilateral(quad, cfg.detector, cam)
+    sheared = quad + np.array([[0, 0], [0, 0], [100, 0], [100, 0]])
+    with pytest.raises(MarkerNotFound, match=r"not right angles|not square"):
+        check_quadrilateral(sheared, cfg.detector, cam)
 
 
 def test_refine_pose_recovers_a_perturbed_pose_from_edge_points():

@@ -544,7 +544,7 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
         raise MarkerNotFound("spatial: too few positive events at the blink phase")
     lit = img > 0
     quad = quadrilateral(outline(lit))
-    check_quadrilateral(quad, params)
+    check_quadrilateral(quad, params, cam)
     # Which pixels fire in phase reads a sparse sensor's 'L' best, how strongly they fire a
     # blurred one's: the clearer reading decides.
     corners, score = max(
@@ -633,7 +633,7 @@ def _locator_square(burst: CompensatedBurst, config: ReceiverConfig) -> np.ndarr
         quad = quadrilateral(locator_blob(burst.image, cell_px))
         cell_px = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).mean() / geo.locator_side
     quad = fit_square(burst.image, quad, geo.locator_side, geo.ring)
-    check_quadrilateral(quad, config.detector)
+    check_quadrilateral(quad, config.detector, config.camera)
     return quad
 
 

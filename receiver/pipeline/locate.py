@@ -31,6 +31,7 @@ import cv2
 import numba
 import numpy as np
 
+from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.pipeline.buffer import first_at
 from eventocc.receiver.pipeline.config import DetectorParams
 
@@ -435,19 +436,30 @@ def quadrilateral(points: np.ndarray) -> np.ndarray:
     return (poly if area2 > 0 else poly[::-1]).astype(np.float64)
 
 
-def check_quadrilateral(quad: np.ndarray, params: DetectorParams) -> None:
-    """The paper's criteria: large enough, corners near right angles, sides of similar length."""
-    sides = np.roll(quad, -1, axis=0) - quad
-    lengths = np.linalg.norm(sides, axis=1)
+def check_quadrilateral(quad: np.ndarray, params: DetectorParams, camera: CameraModel) -> None:
+    """The paper's criteria, through the camera: large enough, and a square seen in perspective,
+    not too obliquely. The homography from a unit square onto the corners (ideal pixels) is
+    K [r1 r2 t] up to scale, where r1 and r2, the plane's axes, are orthogonal and of equal
+    length for a square at any view."""
+    lengths = np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)
     if lengths.min() < params.min_side_px:
         raise MarkerNotFound(
             f"spatial: locator side {lengths.min():.0f} px is below "
             f"{params.min_side_px:.0f} px; move closer or use fewer cells"
         )
-    if lengths.max() / lengths.min() > params.max_side_ratio:
-        raise MarkerNotFound("spatial: the blinking region is not square (view too oblique?)")
-    cosines = np.abs(np.sum(sides * np.roll(sides, 1, axis=0), axis=1)) / (
-        lengths * np.roll(lengths, 1)
-    )
-    if cosines.max() > params.max_abs_cos:
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+    H = cv2.getPerspectiveTransform(unit, camera.undistort_points(quad).astype(np.float32))
+    M = np.linalg.solve(camera.K, H)
+    r1, r2 = M[:, 0], M[:, 1]
+    n1, n2 = np.linalg.norm(r1), np.linalg.norm(r2)
+    if max(n1, n2) / min(n1, n2) > params.max_square_stretch:
+        raise MarkerNotFound("spatial: the blinking region is not square")
+    if abs(r1 @ r2) / (n1 * n2) > params.max_square_skew:
         raise MarkerNotFound("spatial: the blinking region's corners are not right angles")
+    normal = np.cross(r1, r2)
+    sight = M @ np.array([0.5, 0.5, 1.0])
+    cos_view = abs(normal @ sight) / (np.linalg.norm(normal) * np.linalg.norm(sight))
+    if np.degrees(np.arccos(min(cos_view, 1.0))) > params.max_view_deg:
+        raise MarkerNotFound(
+            f"spatial: the marker is seen more obliquely than {params.max_view_deg:g} deg"
+        )
