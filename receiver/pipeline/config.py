@@ -77,6 +77,11 @@ class DetectorParams:
     """The same for the still path's phase-locked image: a still marker shows sharp there and its
     'L' leads by more than 1, while a camera drifting too slowly for the burst to give a flow
     smears it into quadrilaterals centimetres off whose 'L' leads by about 0.3."""
+    min_checked_orientation_score: float = 0.4
+    """The same for profiles whose frames prove the lock (a CRC at the tracked pose), where a
+    wrong lock stays tentative and is dropped once its frames fail: blur of 1.4 px at 6-7 px
+    per cell, or a readout that leaves a pixel one event per blink, makes a still marker's
+    'L' lead by 0.4-0.56 only, still above a drift's smear."""
     min_binned_cell_px: float = 4.0
     """The still path retries on binned pixels (``detector.bin_factor``) only while a cell keeps
     this many binned pixels across: fewer blur the inner locator's 'L' away."""

@@ -56,6 +56,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from eventocc.occ.marker import MarkerGeometry
+from eventocc.occ.profiles import get_profile
 from eventocc.receiver.pipeline.buffer import EventColumns, first_at, to_columns
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.edges import refine_corners
@@ -550,7 +551,9 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     corners, score = max(
         (orient(quad, im, config.geometry) for im in (lit, img)), key=lambda o: o[1]
     )
-    if score < params.min_still_orientation_score:
+    checked = get_profile(config.profile).framed
+    least = params.min_checked_orientation_score if checked else params.min_still_orientation_score
+    if score < least:
         raise MarkerNotFound(
             f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
         )
