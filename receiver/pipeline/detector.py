@@ -14,7 +14,8 @@ Still camera:
    fixed index) gives the time of the data frames' positive bursts.
    It is measured on the ON events of the region's outer one-cell band, the locator ring.
 2. *Spatial.* The positive events around those bursts outline the inner locator; its convex
-   quadrilateral must pass the paper's criteria (four corners, large, right angles, equal sides).
+   quadrilateral must pass the paper's criteria (four corners, large, a square as seen through
+   the camera).
    Once oriented, its corners are refined to sub-pixel edges less blur's spread (``edges``).
 3. *Orientation.* The ring of the inner locator (solid "L" at bottom-left, dashed top and right)
    is read in all four rotations; the best match orders the corners TL, TR, BR, BL.
@@ -493,15 +494,20 @@ def _detect_binned(parts: list[np.ndarray], config: ReceiverConfig, b: int) -> D
     and phase, while a binned pixel collects a cell's worth."""
     cam = config.camera
     coarse = replace(config, camera=cam.binned(cam.width // b, cam.height // b))
+    found = _detect_still(_binned(parts, b), coarse)
+    corners = (found.corners_px + 0.5) * b - 0.5
+    return replace(found, corners_px=corners, T_cam_world=_solve_pnp(corners, config))
+
+
+def _binned(parts: list[np.ndarray], b: int) -> list[np.ndarray]:
+    """Copies of ``parts`` on ``b`` x ``b`` binned pixels."""
     binned = []
     for p in parts:
         q = p.copy()
         q["x"] //= b
         q["y"] //= b
         binned.append(q)
-    found = _detect_still(binned, coarse)
-    corners = (found.corners_px + 0.5) * b - 0.5
-    return replace(found, corners_px=corners, T_cam_world=_solve_pnp(corners, config))
+    return binned
 
 
 def region_cell_px(region: BlinkRegion, config: ReceiverConfig) -> float:
@@ -586,12 +592,7 @@ def _binned_period_match(
     Where each pixel is dense, binning mixes neighbouring cells' bursts and matches less well
     than the pixels themselves, so this is taken only where those fail."""
     cam, params = config.camera, config.detector
-    binned = []
-    for p in parts:
-        q = p.copy()
-        q["x"] //= 2
-        q["y"] //= 2
-        binned.append(q)
+    binned = _binned(parts, 2)
     off = 2 * params.sigma_frac
     told, slower, faster = (
         _period_match(
