@@ -57,7 +57,7 @@ class DetectorParams:
     max_square_skew: float = 0.15
     """The quadrilateral, taken through the camera's intrinsics back onto a plane, must be a
     square: its plane axes may meet at most this far from a right angle (|cos|), while a square
-    gives 0 at any view. Corners found on suite scenes viewed at up to 45 deg gave at most
+    gives 0 at any view. Corners found on suite scenes viewed at up to 43 deg gave at most
     0.005, where a check of the image's own angles (the paper's 90 +- 15 deg) turned away the
     perspective of near markers seen at 40-45 deg."""
     max_square_stretch: float = 1.25
