@@ -345,7 +345,8 @@ def test_on_events_per_pixel_counts_the_lit_half_of_the_locator_per_blink():
     )
     ev = ev[np.argsort(ev["t"], kind="stable")]
     corners = np.array([[99.5, 49.5], [139.5, 49.5], [139.5, 89.5], [99.5, 89.5]])
-    assert on_events_per_pixel(ev, corners, 60.0) == pytest.approx(3.0, rel=0.1)
+    assert on_events_per_pixel([ev[:5000], ev[5000:]], corners, 60.0) == pytest.approx(3.0, rel=0.1)
+    assert on_events_per_pixel([], corners, 60.0) == 0.0
 
 
 def test_cells_read_against_the_locator_ring_and_score_its_contrast():

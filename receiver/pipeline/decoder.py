@@ -372,19 +372,31 @@ def read_stride(config: ReceiverConfig, side_px: float, on_per_pixel: float | No
     return max(int(side_px / want * min(max(thinned, 0.0), 1.0)), 1)
 
 
-def on_events_per_pixel(events: np.ndarray, corners_px: np.ndarray, blink_hz: float) -> float:
+_DENSITY_SAMPLE = 200_000
+"""Events that ``on_events_per_pixel`` reads at most (every k-th): blinks of a megapixel
+marker hold tens of millions, and a count of a sample tells the density as well."""
+
+
+def on_events_per_pixel(parts: list[np.ndarray], corners_px: np.ndarray, blink_hz: float) -> float:
     """ON events per lit pixel per blink inside the locator ``corners_px`` (sensor pixels), from
-    ``events`` (time-ordered, whole blinks), half the cells taken as lit."""
+    the time-ordered ``parts`` of whole blinks (never joined), half the cells taken as lit."""
+    parts = [p for p in parts if len(p)]
+    if not parts:
+        return 0.0
+    step = max(1, sum(len(p) for p in parts) // _DENSITY_SAMPLE)
     quad = np.round(corners_px).astype(np.int32)
     x0, y0 = quad.min(axis=0)
     x1, y1 = quad.max(axis=0) + 1
     mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
     cv2.fillConvexPoly(mask, quad - [x0, y0], 1)
-    on = events[events["p"] > 0]
-    x, y = on["x"].astype(np.int64) - x0, on["y"].astype(np.int64) - y0
-    inside = (x >= 0) & (y >= 0) & (x < mask.shape[1]) & (y < mask.shape[0])
-    count = np.count_nonzero(mask[y[inside], x[inside]])
-    span_us = int(events["t"][-1]) - int(events["t"][0]) if len(events) else 0
+    count = 0
+    for part in parts:
+        on = part[::step]
+        on = on[on["p"] > 0]
+        x, y = on["x"].astype(np.int64) - x0, on["y"].astype(np.int64) - y0
+        inside = (x >= 0) & (y >= 0) & (x < mask.shape[1]) & (y < mask.shape[0])
+        count += step * np.count_nonzero(mask[y[inside], x[inside]])
+    span_us = int(parts[-1]["t"][-1]) - int(parts[0]["t"][0])
     blinks = max(span_us * blink_hz / 1e6, 1.0)
     return count / max(0.5 * np.count_nonzero(mask) * blinks, 1.0)
 

@@ -339,8 +339,10 @@ class Receiver:
                 if tracker.capture(recent["xu"], recent["yu"], now):
                     T = tracker.T_cam_world
         side = self.cell_px = cell_side_px(self.config, T)
-        blinks = self._buffer.between(now - _DENSITY_BLINKS * 1e6 / found.blink_hz, now)
-        density = on_events_per_pixel(blinks, found.corners_px, found.blink_hz)
+        with self._cpu("lock"):
+            span_us = _DENSITY_BLINKS * 1e6 / found.blink_hz
+            blinks = self._buffer.parts_between(now - span_us, now)
+            density = on_events_per_pixel(blinks, found.corners_px, found.blink_hz)
         stride = read_stride(self.config, side, density)
         late, q = self.config.decoder.late_mark_px_per_cell, self.config.decoder
         framed = get_profile(self.config.profile).framed
