@@ -633,7 +633,7 @@ class CellReader:
     def _classify(self, m: int, density: np.ndarray, pixels: int) -> FrameRead:
         """Bits from the cells' event densities, against the ring's white and black cells,
         once less what the lit neighbours spill into each cell (``_less_spill``)."""
-        white_ref, black_ref, bits = self._split(density)
+        white_ref, black_ref, _, bits = self._split(density)
         # The locator's readings take the densities as they are: the spill's fit assumes the
         # 'L' upright, which they judge.
         score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
@@ -643,28 +643,24 @@ class CellReader:
         raw = density
         for _ in range(2):  # the second pass fits the spill on the bits the first corrected
             density = _less_spill(raw, self._lit(bits))
-            white_ref, black_ref, bits = self._split(density)
+            white_ref, black_ref, threshold, bits = self._split(density)
         payload = density[1:-1, 1:-1]
-        threshold = self._threshold(payload, white_ref, black_ref)
         sure = self.config.decoder.sure_contrast * max(white_ref - black_ref, 1e-9)
         confidence = np.clip(np.abs(payload - threshold) / sure, 0.0, 1.0)
         return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
 
-    def _split(self, density: np.ndarray) -> tuple[float, float, np.ndarray]:
-        """(white and black references of the ring, payload bits) of (n, n) densities."""
+    def _split(self, density: np.ndarray) -> tuple[float, float, float, np.ndarray]:
+        """(white and black references of the ring, threshold, payload bits) of (n, n)
+        densities."""
         cells = self._ring_cells
         ring = density[cells[:, 1], cells[:, 0]]
         white_ref = float(np.median(ring[self._ring_white]))
         black_ref = float(np.median(ring[~self._ring_white]))
         payload = density[1:-1, 1:-1]
-        bits = (payload > self._threshold(payload, white_ref, black_ref)).astype(np.uint8)
-        return white_ref, black_ref, bits
-
-    @staticmethod
-    def _threshold(payload: np.ndarray, white_ref: float, black_ref: float) -> float:
         contrast = max(white_ref - black_ref, 1e-9)
         lo, hi = (black_ref + share * contrast for share in _SPLIT_RANGE)
-        return min(max(_two_means(payload, black_ref, white_ref), lo), hi)
+        threshold = min(max(_two_means(payload, black_ref, white_ref), lo), hi)
+        return white_ref, black_ref, threshold, (payload > threshold).astype(np.uint8)
 
     def _lit(self, bits: np.ndarray) -> np.ndarray:
         """(n, n) bool: the locator ring as it is drawn around the payload ``bits``."""
