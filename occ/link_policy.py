@@ -395,11 +395,7 @@ class LinkPolicy:
         if window.span_s < c.judge_s or window.expected < c.min_frames:
             return f"judging ({window.span_s:.2f} of {c.judge_s:g} s)"
         px = _low(window)
-        need = (
-            c.pass_up
-            if px is None or px < c.min_px[current.profile] * c.far_margin
-            else c.pass_up_far
-        )
+        need = c.pass_up if px is None or self._close(current, px) else c.pass_up_far
         if window.pass_share < need:
             return f"{window.pass_share:.0%} of frames passed (stepping up needs {need:.0%})"
         if recent.ber is not None and recent.ber > c.ber_down:
@@ -468,14 +464,18 @@ class LinkPolicy:
         the profile needs: errors that grow as the cells shrink. (Errors with the cells far
         above it come from motion or a full readout, which a denser marker of the same size
         does not worsen much.)"""
-        c = self.config
         px = _low(window)
         return (
             window.ber is not None
-            and window.ber > c.ber_up
+            and window.ber > self.config.ber_up
             and px is not None
-            and px < c.min_px[current.profile] * c.far_margin
+            and self._close(current, px)
         )
+
+    def _close(self, current: LinkChoice, px: float) -> bool:
+        """Whether ``px`` pixels per cell lie less than ``far_margin`` above what the profile
+        of ``current`` needs."""
+        return px < self.config.min_px[current.profile] * self.config.far_margin
 
     def _top_reason(self, current: LinkChoice, px: float, now_s: float) -> str:
         up = [n for n in CELLS_LADDER if n > current.cells]
