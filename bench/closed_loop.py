@@ -254,22 +254,15 @@ def main(argv: list[str] | None = None) -> None:
     revisions = {"sweep": REVISION, "auto": REVISION}
     if args.report_only:
         kept = json.loads(results.read_text())
-        fixed = [FixedPoint(**f) for f in kept["fixed"]]
-        auto = [
-            AutoRun(**{**a, "segments": [tuple(s) for s in a["segments"]]}) for a in kept["auto"]
-        ]
-        _write(fixed, auto, kept["revisions"])
+        _write(*_points(kept), kept["revisions"])
         return
     if (args.resume or args.auto_only) and results.exists():
         kept = json.loads(results.read_text())
-        fixed = [FixedPoint(**f) for f in kept["fixed"]]
+        fixed, kept_auto = _points(kept)
         revisions["sweep"] = kept.get("revisions", {}).get("sweep") or _section_revision()
         if not args.auto_only:
             revisions["auto"] = kept.get("revisions", revisions)["auto"]
-            auto = [
-                AutoRun(**{**a, "segments": [tuple(s) for s in a["segments"]]})
-                for a in kept["auto"]
-            ]
+            auto = kept_auto
     for distance in args.distances:
         for motion in args.motions:
             if any((a.distance_m, a.motion) == (distance, motion) for a in auto):
@@ -306,6 +299,13 @@ def main(argv: list[str] | None = None) -> None:
         print(report(fixed, auto, revisions))
         return
     _write(fixed, auto, revisions)
+
+
+def _points(kept: dict) -> tuple[list[FixedPoint], list[AutoRun]]:
+    """The fixed settings' points and the auto runs of a saved results file."""
+    fixed = [FixedPoint(**f) for f in kept["fixed"]]
+    auto = [AutoRun(**{**a, "segments": [tuple(s) for s in a["segments"]]}) for a in kept["auto"]]
+    return fixed, auto
 
 
 def _write(fixed: list[FixedPoint], auto: list[AutoRun], revisions: dict[str, str]) -> None:
