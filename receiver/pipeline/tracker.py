@@ -274,8 +274,7 @@ def _assign(
             for j in range(nb):
                 on_edges[j] |= np.int64(dist[e, j] <= gate[e]) << e
                 near[j] |= dist[e, j] <= band[e]
-                beyond = (dist[e, j] > gate[e]) & (dist[e, j] <= 2.0 * gate[e])
-                in_strip[j] |= np.int64(beyond) << e  # counted in ``spread`` only
+                in_strip[j] |= np.int64(dist[e, j] <= 2.0 * gate[e]) << e
         for j in range(nb):
             i = b0 + j
             edges = on_edges[j]
@@ -284,7 +283,6 @@ def _assign(
                 edges ^= lowest
                 e = _BIT_INDEX[lowest % 37]
                 d = dist[e, j]
-                spread[e, min(int(d * per_px[e]), _SPREAD_BINS - 1)] += 1
                 # Into bin s, replacing its older event in the count and distance sum. Written
                 # out here: a helper taking the six arrays makes numba keep a dozen atomic
                 # reference counts per call.
