@@ -555,14 +555,17 @@ def _distance(px: float, py: float, a: np.ndarray, b: np.ndarray) -> tuple[float
 def test_cluster_assignment_matches_a_plain_loop(seed, moving):
     """The compiled assignment measures a block of events edge by edge and bins each event onto
     the edges of its mask; a loop over the events and their eight edges must give the same
-    clusters and the same fit counts. Moving edges (up to ~10 px/ms) carry each point back to
-    the time the edges hold, by ``carry_us`` at most."""
+    clusters, the same fit counts and the same polarity tallies. Moving edges (up to ~10 px/ms)
+    carry each point back to the time the edges hold, by ``carry_us`` at most."""
     tracker, xu, yu = _tracker_and_points(seed, 300)
     q = tracker.config.tracker
     t = np.arange(len(xu), dtype=np.int64) * 10  # 0 .. 3 ms
     ref_us = 1000
     rng = np.random.default_rng(seed)
     va, vb = rng.normal(0, 0.005 * moving, (2, 8, 2))  # px/us
+    pol = rng.choice(np.array([-1, 1], np.int8), len(t))
+    polarity = rng.integers(-1, 2, 8)  # each edge's expected one, 0: unjudged
+    expected_tally = np.zeros((8, 2), np.int64)
     gate, band, cap = tracker._gate, tracker._band, tracker._cap
     expected_t = np.full(tracker._slots[2].shape, -1)
     expected_spread = np.zeros((8, 4), np.int64)
@@ -581,16 +584,21 @@ def test_cluster_assignment_matches_a_plain_loop(seed, moving):
             if d <= gate[e]:
                 on = True
                 expected_t[e, min(int(w * cap[e]), cap[e] - 1)] = t[i]
+                if polarity[e]:
+                    expected_tally[e, int(pol[i] != polarity[e])] += 1
         near_count += near
         on_count += near and on
     sx, sy, st_, sd, sum_d, n_valid = tracker._slots
     fit, spread = np.zeros(3, np.int64), np.zeros((8, 4), np.int64)
+    tally = np.zeros((8, 2), np.int64)
     a, b = tracker._a, tracker._b
     args = (a, b, va, vb, ref_us, gate, band, cap, sx, sy, st_, sd, sum_d, n_valid, fit, spread)
-    _assign(xu, yu, t, 0, *args, 1 << 62, 1 << 62, q.min_fill, q.min_new_events, q.carry_us)
+    args += (polarity, tally, 1 << 62, 1 << 62, q.min_fill, q.min_new_events, q.carry_us)
+    _assign(xu, yu, t, pol, 0, *args)
     assert np.array_equal(st_, expected_t)
     assert fit[:2].tolist() == [near_count, on_count]
     assert np.array_equal(spread, expected_spread)
+    assert np.array_equal(tally, expected_tally)
     assert n_valid.tolist() == (expected_t >= 0).sum(axis=1).tolist()
     assert np.allclose(sum_d, np.where(st_ >= 0, sd, 0.0).sum(axis=1))
 

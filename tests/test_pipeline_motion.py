@@ -450,8 +450,8 @@ def test_the_ring_fires_as_the_flow_says_at_the_true_pose_only(slow_clip):
     larger = centre + (world - centre) * (geo.locator_side + 2 * geo.ring) / geo.locator_side
     corners = config.camera.project(larger @ truth[1][:3, :3].T + truth[1][:3, 3])
     too_near = pnp(corners, world, config.camera)
-    on, agree = ring_support(truth[1], events, flow, config)
-    assert on > 100 and agree >= 0.9
+    on, agree, worst = ring_support(truth[1], events, flow, config)
+    assert on > 100 and agree >= 0.9 and worst >= 0.9
     assert ring_support(too_near, events, flow, config)[1] < config.detector.min_edge_polarity
 
 

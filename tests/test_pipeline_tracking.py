@@ -3,6 +3,7 @@ runs on the virtual event camera against its ground truth."""
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import replace
 
 import numpy as np
@@ -11,10 +12,15 @@ from scipy.spatial.transform import Rotation
 
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
+from eventocc.receiver.events import make_events
+from eventocc.receiver.pipeline import receiver as receiver_module
 from eventocc.receiver.pipeline import tracker as tracker_module
+from eventocc.receiver.pipeline.buffer import to_columns
 from eventocc.receiver.pipeline.config import ReceiverConfig
+from eventocc.receiver.pipeline.decoder import cell_side_px
+from eventocc.receiver.pipeline.detector import ring_support
 from eventocc.receiver.pipeline.metrics import pose_errors
-from eventocc.receiver.pipeline.pose import plane_homography, project_ideal
+from eventocc.receiver.pipeline.pose import plane_homography, pnp, project_ideal
 from eventocc.receiver.pipeline.receiver import (
     DETECTING,
     TRACKING,
@@ -23,6 +29,7 @@ from eventocc.receiver.pipeline.receiver import (
     Output,
     PoseEstimate,
     Receiver,
+    Track,
 )
 from eventocc.receiver.pipeline.report import DecodeLog, FrameTruth, decode_events
 from eventocc.receiver.pipeline.tracker import EdgeTracker, _nearest_edge
@@ -156,7 +163,88 @@ def test_a_silent_outer_edge_swept_by_the_motion_contradicts_the_pose():
     assert not run((1,), silent_updates=1000), "fewer pose updates than must find it silent"
 
 
-@pytest.mark.parametrize("name", ["fit_judgements", "silent_updates", "still_lookup_every"])
+def test_an_outer_edge_firing_against_the_motion_contradicts_the_pose():
+    # The camera slides sideways at ~1.5 px/ms for 60 ms: the left and right edges sweep, and a
+    # right pose sees each fire as the motion makes it (ON where the white ring moves in). A
+    # pose a ring width off on a side lies on an edge of the other sign: its events there come
+    # reversed. An edge the motion runs along says nothing, and the inner edges are not judged
+    # (the blinking locator fires both ways beside them).
+    def run(reversed_: tuple[int, ...], with_polarity: bool = True, **params) -> str | None:
+        config = replace(CONFIG, tracker=replace(CONFIG.tracker, **params))
+        tracker = EdgeTracker(config, invert(_view()))
+        start, after_1ms = (
+            tracker._project_edges(invert(_view(shift=(s, 0))))[0] for s in (0, 3e-3)
+        )
+        flow = (after_1ms - start).mean(axis=0)
+        for k in range(60):
+            truth = invert(_view(shift=(0.003 * k, 0.0)))
+            a, b = tracker._project_edges(truth)
+            polarity = tracker_module.edge_polarities(a, b, flow)
+            x, y, t = _edge_events(truth, 1000 * k, seed=k)
+            edge = _nearest_edge(x, y, a, b)[1]
+            p = np.where(np.isin(edge, reversed_), -1, 1) * polarity[edge]
+            p[p == 0] = np.random.default_rng(k).choice([-1, 1], np.count_nonzero(p == 0))
+            tracker.push(x, y, t, p.astype(np.int8) if with_polarity else None)
+        return tracker.off_edges()
+
+    assert "against the motion" in run((1,)), "the outer right edge sweeps, its events reversed"
+    assert run(()) is None
+    assert run((0,)) is None, "the motion runs along the top edge: no evidence"
+    assert run((5,)) is None, "an inner edge is not judged"
+    assert run((1,), with_polarity=False) is None, "no polarities, no judgement"
+    assert run((1,), polarity_sweep_px_per_ms=5.0) is None, "slower than the sweep judged"
+    assert run((1,), reversed_windows=10) is None, "fewer windows than must find it reversed"
+
+
+def test_paper_proof_needs_the_swept_edges_to_fire_with_the_motion():
+    # ``paper`` has no CRC: the 'L' read upright, and the ring's swept edges agreeing with the
+    # motion's polarities, prove its lock. Unjudged edges (NaN: not swept) are no evidence, but
+    # a lock made under motion needs each outer edge to have been swept since.
+    def track(moving: bool) -> Track:
+        tracker = EdgeTracker(CONFIG, invert(_view()))
+        return Track(tracker, None, 0, moving, False, None, deque([0.8, 0.9, 0.7], maxlen=3), None)
+
+    still = track(moving=False)
+    assert np.isnan(still.tracker.agreement).all() and still.upright(0.5, 0.5)
+    still.tracker.agreement = np.array([np.nan, 0.95, np.nan, 0.9, *[np.nan] * 4])
+    assert still.upright(0.5, 0.5)
+    still.tracker.agreement[3] = -0.05  # a side between the ring's edge and the next one
+    assert not still.upright(0.5, 0.5)
+    assert still.upright(0.5, -0.1)
+    still.turn_leads.append(0.3)
+    assert not still.upright(0.5, -0.1), "the 'L' read barely upright"
+    moving = track(moving=True)
+    moving.tracker.best_agreement = np.array([np.nan, 0.95, np.nan, 0.9, *[np.nan] * 4])
+    assert not moving.upright(0.5, 0.5), "the top and bottom sides never swept"
+    moving.tracker.best_agreement[[0, 2]] = 0.8
+    assert moving.upright(0.5, 0.5)
+
+
+def test_detection_finds_the_one_side_that_fires_against_the_flow():
+    # Sliding sideways, the left and right sides sweep. Three sides' events agreeing keep the
+    # mean agreement up; the side that reads reversed is the ring-width-off fit's mark.
+    T = invert(_view(tilt=10))
+    a, b = (np.ascontiguousarray(e) for e in EdgeTracker(CONFIG, T)._project_edges(T))
+    flow = np.array([1.5, 0.0])
+    x, y, t = _edge_events(T, 0, n_per_edge=80)
+    edge = _nearest_edge(x, y, a, b)[1]
+    expected = tracker_module.edge_polarities(a, b, flow)[edge]
+    p = np.where(expected == 0, 1, expected)
+
+    def support(reversed_edge: int | None) -> tuple[int, float, float]:
+        sign = np.where(edge == reversed_edge, -1, 1)
+        events = make_events(t, np.round(x), np.round(y), sign * p)
+        return ring_support(T, to_columns(events, CAMERA.undistort_table), flow, CONFIG)
+
+    assert support(None)[2] >= 0.9
+    assert support(1)[2] <= tracker_module.REVERSED_AGREEMENT, "the outer right edge reversed"
+    assert support(5)[2] >= 0.9, "an inner edge is not the worst side's judge"
+    assert support(0)[2] >= 0.9, "the top edge slides along the flow: no evidence"
+
+
+@pytest.mark.parametrize(
+    "name", ["fit_judgements", "silent_updates", "still_lookup_every", "reversed_windows"]
+)
 def test_tracker_counts_must_be_at_least_one(name):
     with pytest.raises(ValueError, match=f"tracker {name} must be at least 1, got 0"):
         replace(CONFIG.tracker, **{name: 0})
@@ -374,3 +462,32 @@ def test_tracking_follows_a_sway_after_a_still_lock(tmp_path):
     raw = decode_events(Receiver(ReceiverConfig(CAMERA, pose_smoothing_us=0)), rec)
     assert len(raw.pose_t) == len(log.pose_t)
     assert ate_m(log) < 0.8 * ate_m(raw)
+
+
+@pytest.mark.parametrize("shift_cells, taken", [(0.4, True), (1.0, False)])
+def test_a_still_lock_takes_its_pose_again_from_a_fresh_window(
+    tmp_path, monkeypatch, shift_cells, taken
+):
+    # A window after a still lock the receiver reads the marker again (its lock's window may
+    # have mixed the first frames with what came before). Here the fresh reading is the true
+    # one moved sideways: within half a cell of the held pose it replaces it; a cell away it
+    # is another lock's and is left.
+    real = receiver_module.detect_still
+
+    def moved(parts, config):
+        found = real(parts, config)
+        step = np.array([shift_cells * cell_side_px(config, found.T_cam_world), 0.0])
+        corners = found.corners_px + step
+        world = config.geometry.locator_corners(config.marker_size_m)
+        T = pnp(corners, world, config.camera)
+        score = found.orientation_score + 0.1
+        return replace(found, corners_px=corners, T_cam_world=T, orientation_score=score)
+
+    monkeypatch.setattr(receiver_module, "detect_still", moved)
+    log, _ = _run(tmp_path, [(0.0, _view(tilt=10)), (0.5, _view(tilt=10))], 0.5)
+    t, poses = np.array(log.pose_t), np.array(log.poses)
+    lock = log.receiver.stats.lock_times_us[0]
+    window = log.receiver.config.detector.window_us
+    before = poses[t < lock + window][-1]
+    after = poses[t > lock + window + 20_000][0]
+    assert (np.linalg.norm(after[:3, 3] - before[:3, 3]) > 1e-3) == taken

@@ -12,6 +12,7 @@ from eventocc.occ.marker import MarkerGeometry
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.events import make_events
+from eventocc.receiver.pipeline import detector
 from eventocc.receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from eventocc.receiver.pipeline.config import DecoderParams, FilterParams, ReceiverConfig
 from eventocc.receiver.pipeline.decoder import (
@@ -429,3 +430,33 @@ def test_a_thinned_blink_is_timed_on_binned_pixels(refresh_hz, blinks):
     least = config.detector.min_period_match
     assert _period_match(heat, triplets, mask) < least
     assert (_binned_period_match([ev], mask, config) >= least) == blinks
+
+
+def test_detection_prefers_a_path_that_reads_the_l(monkeypatch):
+    # A still camera's noise can fake a flow: the moving path's burst then shows no 'L'
+    # (``oriented`` false) where the still path reads it. The reading path wins; an unoriented
+    # detection stands only where no path reads the 'L'.
+    config = ReceiverConfig(CameraModel(64, 48, [[50, 0, 32], [0, 50, 24], [0, 0, 1]]))
+    region = detector.BlinkRegion(detector.Box(0, 0, 64, 48), 0.0, 1.0)
+    monkeypatch.setattr(detector, "blinking_region", lambda parts, config: region)
+    monkeypatch.setattr(detector, "latest_burst_us", lambda parts, burst, period: 50_000.0)
+    monkeypatch.setattr(detector, "burst_flow", lambda *args: np.array([0.1, 0.0]))
+    monkeypatch.setattr(detector, "region_cell_px", lambda region, config: 10.0)
+
+    def found(oriented: bool) -> detector.Detection:
+        return detector.Detection(
+            np.zeros((4, 2)), np.eye(4), 0, 0.0, 30.0, 1.0, 0.5, np.zeros(2), oriented
+        )
+
+    def miss(*args):
+        raise detector.MarkerNotFound("spatial: nothing here")
+
+    unoriented, still = found(False), found(True)
+    monkeypatch.setattr(detector, "_detect_moving", lambda *args: unoriented)
+    monkeypatch.setattr(detector, "_detect_densest", miss)
+    monkeypatch.setattr(detector, "_detect_slow", miss)
+    monkeypatch.setattr(detector, "detect_still", lambda *args: still)
+    events = make_events(np.arange(200) * 500, np.arange(200) % 64, np.arange(200) % 48, 1)
+    assert detector.detect(events, config) is still
+    monkeypatch.setattr(detector, "detect_still", miss)
+    assert detector.detect(events, config) is unoriented

@@ -52,6 +52,9 @@ class DetectorParams:
     """Width of the triplet-period Gaussian, as a fraction of the blink frequency."""
     heat_threshold: float = 0.2
     """Heat-map binarisation, relative to its (robust) maximum."""
+    still_recheck_us: int | None = 500_000
+    """A still lock's pose is taken again from a fresh window one window after the lock, then
+    this often while the camera stands still (``Receiver._recheck_still``; None: never)."""
     min_side_px: float = 12.0
     """Smallest accepted locator side (the paper uses 50 px on a 1280x720 sensor)."""
     max_square_skew: float = 0.15
@@ -174,6 +177,18 @@ class TrackerParams:
     silent_updates: int = 30
     """Consecutive pose updates that must find a silent swept outer edge to contradict the pose
     (``EdgeTracker.contradicted``): one that slides off at a flow peak often comes back."""
+    polarity_sweep_px_per_ms: float = 0.2
+    """An edge's events are judged by their polarity (``EdgeTracker.reversed_edges``) while the
+    image crosses it at least this fast: a swept edge's pixels fire ~10 events each, hundreds
+    of times the sensor's noise on the edge's few pixels."""
+    polarity_window_us: int = 10_000
+    min_polarity_events: int = 30
+    """An edge's events are judged in windows of ``polarity_window_us``, those with at least
+    ``min_polarity_events`` swept ones."""
+    reversed_windows: int = 3
+    """Judged windows in a row in which an edge fires reversed (``tracker.REVERSED_AGREEMENT``)
+    before the lock goes: a right pose's swept edges agree at +0.9 or more, one a ring width
+    off on a side reads -0.7 to -1 there."""
     max_age_us: int = 30_000
     """Slots older than this are stale and leave the cluster."""
     max_events_per_ms: float | None = 4000.0
@@ -191,7 +206,7 @@ class TrackerParams:
     max_iterations: int = 10
 
     def __post_init__(self) -> None:
-        for name in ("fit_judgements", "silent_updates", "still_lookup_every"):
+        for name in ("fit_judgements", "silent_updates", "still_lookup_every", "reversed_windows"):
             if getattr(self, name) < 1:
                 raise ValueError(f"tracker {name} must be at least 1, got {getattr(self, name)}")
 
@@ -217,6 +232,11 @@ class DecoderParams:
     (``LinkProfile.erasure_below``), a 64th of the contrast: an erasure pays only when a third
     of the erased bytes are wrong, and under motion a cell an eighth of the contrast away is
     still mostly right."""
+    min_edge_agreement: float = 0.5
+    """``paper``'s proof also asks each swept outer edge of the ring to have fired with the
+    motion's polarity at least this well in the tracker's latest window: the truth's agree at
+    +0.9 or more where the motion crosses them squarely, +0.5 where it barely does; poses a
+    ring width off on a side or skewed across a corner read -1 to +0.3 there."""
     turn_frames: int = 3
     """Read frames over which the inner locator's 'L' is judged (``min_turn_lead``)."""
     min_turn_lead: float = 0.5

@@ -78,7 +78,12 @@ from eventocc.receiver.pipeline.locate import (
     quadrilateral,
 )
 from eventocc.receiver.pipeline.pose import pnp, project_ideal
-from eventocc.receiver.pipeline.tracker import EdgeTracker, _nearest_edge, edge_polarities
+from eventocc.receiver.pipeline.tracker import (
+    REVERSED_AGREEMENT,
+    EdgeTracker,
+    _nearest_edge,
+    edge_polarities,
+)
 
 TILE_PX = 8
 """Side of the blink map's tiles: a couple of cells at the smallest accepted marker."""
@@ -438,7 +443,7 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
     try:
         region = blinking_region(parts, config)
     except MarkerNotFound:  # the still path says why in its own, finer terms
-        return _detect_still(parts, config)
+        return detect_still(parts, config)
     tb = latest_burst_us(parts, region.burst_us, period)
     flow = burst_flow(parts, tb, period, region.box)
     if np.any(flow) and not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
@@ -451,7 +456,7 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
         paths.append(lambda: _detect_densest(parts, tb, region, config))
     # A small marker's few OFF events can fake a flow: the still path gets its chance too.
     paths += [
-        lambda: _detect_still(parts, config),
+        lambda: detect_still(parts, config),
         lambda: _detect_slow(parts, tb, region, config),
     ]
     # Under motion the latest burst is often unreadable while the one before reads clearly.
@@ -464,15 +469,21 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
     cell_px = region_cell_px(region, config)
     if (b := bin_factor(cell_px, config)) > 1:
         paths.append(lambda: _detect_binned(parts, config, b))
-    misses = []
+    # A detection that did not read the 'L' (not ``oriented``) stands only if no later path
+    # reads it: a still camera's noise can fake a flow whose burst shows no 'L', where the
+    # still path reads it clearly.
+    misses, unoriented = [], None
     for path in paths:
         try:
             found = path()
         except MarkerNotFound as miss:
             misses.append(miss)
             continue
-        if found is not None:
+        if found is not None and found.oriented:
             return found
+        unoriented = unoriented or found
+    if unoriented is not None:
+        return unoriented
     misses[0].cell_px = cell_px
     raise misses[0]  # the preferred path's reason
 
@@ -494,7 +505,7 @@ def _detect_binned(parts: list[np.ndarray], config: ReceiverConfig, b: int) -> D
     and phase, while a binned pixel collects a cell's worth."""
     cam = config.camera
     coarse = replace(config, camera=cam.binned(cam.width // b, cam.height // b))
-    found = _detect_still(_binned(parts, b), coarse)
+    found = detect_still(_binned(parts, b), coarse)
     corners = (found.corners_px + 0.5) * b - 0.5
     return replace(found, corners_px=corners, T_cam_world=_solve_pnp(corners, config))
 
@@ -518,7 +529,7 @@ def region_cell_px(region: BlinkRegion, config: ReceiverConfig) -> float:
     return max(side, 0) / config.geometry.locator_side
 
 
-def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
+def detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     """The paper's path: per-pixel triplets, the locator band's phase, the phase-locked image."""
     params, cam = config.detector, config.camera
     heat, triplets = blink_heatmap(parts, cam.width, cam.height, config.blink_hz, params.sigma_frac)
@@ -741,11 +752,12 @@ def _detect_moving(
         events_between(parts, t_us - half, t_us + half, most=_CAPTURE_SAMPLE),
         config.camera.undistort_table,
     )
-    T, agree = _capture_ring(ring_events, quad, t_us, burst.flow, config)
-    if agree < params.min_edge_polarity:
+    T, agree, worst = _capture_ring(ring_events, quad, t_us, burst.flow, config)
+    if agree < params.min_edge_polarity or worst <= REVERSED_AGREEMENT:
         raise MarkerNotFound(
             f"spatial: the ring's edges fire against the motion at the fitted pose (polarity "
-            f"agreement {agree:+.2f}), as a fit a ring width off does"
+            f"agreement {agree:+.2f}, {worst:+.2f} on its worst side), as a fit a ring width "
+            "off does"
         )
     corners = config.camera.project(world @ T[:3, :3].T + T[:3, 3])
     oriented, score = orient(corners - origin, burst.image, geo)
@@ -761,12 +773,13 @@ def _detect_moving(
 
 def _capture_ring(
     events: EventColumns, quad: np.ndarray, t_us: int, flow: np.ndarray, config: ReceiverConfig
-) -> tuple[np.ndarray, float]:
+) -> tuple[np.ndarray, float, float]:
     """The pose at ``t_us`` whose ring edges the most of ``events`` (those around ``t_us``) lie
     on, preferring poses whose edges fire as the image ``flow`` makes them (``ring_support``),
-    and its polarity agreement. Captures start at scaled copies of the locator's quadrilateral
-    (any rotation: the ring is square), and at the same a ring width smaller: the blob and
-    the fitted square often take the ring's inner edge for the locator's outline."""
+    and its polarity agreements (overall, the worst side's). Captures start at scaled copies
+    of the locator's quadrilateral (any rotation: the ring is square), and at the same a ring
+    width smaller: the blob and the fitted square often take the ring's inner edge for the
+    locator's outline."""
     xu, yu = events["xu"], events["yu"]
     geo = config.geometry
     smaller = geo.tracked_side / (geo.tracked_side + 2 * geo.ring)
@@ -777,28 +790,38 @@ def _capture_ring(
         tracker = EdgeTracker(config, _solve_pnp(centre + scale * (quad - centre), config), t_us)
         if not tracker.capture(xu, yu, t_us, (events["p"], flow)):
             continue
-        on, agree = ring_support(tracker.T_cam_world, events, flow, config)
-        key = (agree >= config.detector.min_edge_polarity, on, agree)
+        on, agree, worst = ring_support(tracker.T_cam_world, events, flow, config)
+        sound = worst > REVERSED_AGREEMENT and agree >= config.detector.min_edge_polarity
+        key = (sound, on, agree, worst)
         if best_key is None or key > best_key:
             best, best_key = tracker.T_cam_world, key
     if best is None:
         raise MarkerNotFound("spatial: too few ring-edge events around the burst to fit the ring")
-    return best, best_key[2]
+    return best, best_key[2], best_key[3]
 
 
 def ring_support(
     T: np.ndarray, events: EventColumns, flow: np.ndarray, config: ReceiverConfig
-) -> tuple[int, float]:
-    """How many of ``events`` lie within ``_ON_EDGE_PX`` of a ring edge at pose ``T``, and the
-    mean agreement (-1..1) of their polarities with those that image ``flow`` gives them
-    (``edge_polarities``; edges of unknown polarity left out). A fit a ring width too large lies
-    on the edges of the black ring around the white one, whose sides are the other way round:
-    the truth agrees at about +1, such fits well below."""
+) -> tuple[int, float, float]:
+    """How many of ``events`` lie within ``_ON_EDGE_PX`` of a ring edge at pose ``T``, the mean
+    agreement (-1..1) of their polarities with those that image ``flow`` gives them
+    (``edge_polarities``; edges of unknown polarity left out), and the lowest such agreement
+    of an outer edge with ``min_polarity_events`` judged events (+1 if none). A fit a ring
+    width too large lies on the edges of the black ring around the white one, whose sides are
+    the other way round: the truth agrees at about +1, such fits well below. A fit a ring
+    width off on one side only keeps the mean up with its three others, but that side's outer
+    edge reads reversed (the tracker's own test, ``EdgeTracker.reversed_edges``)."""
     edges = project_ideal(T, config.camera.K, config.geometry.tracked_edges(config.marker_size_m))
     a, b = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
     dist, edge = _nearest_edge(events["xu"], events["yu"], a, b, _ON_EDGE_PX)  # the tracker's
     on = dist <= _ON_EDGE_PX
     expected = edge_polarities(a, b, flow)[edge]
     judged = on & (expected != 0)
-    agree = float(np.mean(events["p"][judged] * expected[judged])) if judged.any() else 0.0
-    return int(np.count_nonzero(on)), agree
+    signed = events["p"][judged] * expected[judged]
+    agree = float(np.mean(signed)) if judged.any() else 0.0
+    outer = edge[judged] < 4
+    count = np.bincount(edge[judged][outer], minlength=4)
+    total = np.bincount(edge[judged][outer], weights=signed[outer], minlength=4)
+    seen = count >= config.tracker.min_polarity_events
+    worst = float((total[seen] / count[seen]).min()) if seen.any() else 1.0
+    return int(np.count_nonzero(on)), agree, worst

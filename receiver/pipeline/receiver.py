@@ -10,14 +10,16 @@ Detection attempts are spaced in event time (``DetectorParams.retry_us``), so a 
 the same on any machine; only a real-time source also spaces them by their CPU cost. A detection
 becomes a lock only once the frames still buffered verify it (``Receiver._unverified``; under
 motion the frames after the detected burst's, waited for if need be: ``Receiver._postpone``). While
-tracking, a lock is dropped when the tracker leaves the ring's edges or an outer edge stays silent
-while the motion sweeps it (``EdgeTracker.contradicted``), the marker leaves the view,
+tracking, a lock is dropped when the tracker leaves the ring's edges, an outer edge stays silent
+while the motion sweeps it (``EdgeTracker.contradicted``) or fires against it
+(``EdgeTracker.reversed_edges``: a side fitted a ring width off), the marker leaves the view,
 the inner locator goes unseen for several frames, or its 'L' reads upright barely better than
 turned (``Track.misturned``): a pose a quarter turn off passes every other check. Some wrong
 poses read the 'L' well all the same, so a lock stays unproven until one of its frames passes
-its check (CRC; ``paper``: its 'L' read clearly), and is on probation meanwhile (a few frames
-for a still camera, more under motion: ``Track.failed_probation``). A proof lapses when no
-frame has passed for a while (``DecoderParams.proof_lapse_us``), and the lock goes with it.
+its check (CRC; ``paper``: its 'L' read clearly, its swept edges firing with the motion), and
+is on probation meanwhile (a few frames for a still camera, more under motion:
+``Track.failed_probation``). A proof lapses when no frame has passed for a while
+(``DecoderParams.proof_lapse_us``), and the lock goes with it.
 Poses outside a proof come out tentative (``PoseEstimate.verified`` false).
 
 Only one stage touches every event while the marker is tracked: the compiled triage
@@ -54,7 +56,13 @@ from eventocc.receiver.pipeline.decoder import (
     on_events_per_pixel,
     read_stride,
 )
-from eventocc.receiver.pipeline.detector import Detection, MarkerNotFound, detect, nearest_turn
+from eventocc.receiver.pipeline.detector import (
+    Detection,
+    MarkerNotFound,
+    detect,
+    detect_still,
+    nearest_turn,
+)
 from eventocc.receiver.pipeline.filters import EventFilter
 from eventocc.receiver.pipeline.pose import PoseHistory, project_ideal
 from eventocc.receiver.pipeline.smoothing import PoseSmoother
@@ -132,8 +140,9 @@ class Track:
     reader: CellReader
     next_frame: int
     """The next frame to read; negative for the frames still buffered from before a still lock."""
-    burst_frame_read_only: bool
-    """Frame 0 of a lock under motion (the detected burst's) only times the frame clock."""
+    moving: bool
+    """The lock came from a burst under motion: its frame 0 (the burst's) only times the frame
+    clock, and ``paper``'s proof needs every side of the ring seen firing with the motion."""
     late_mark: bool
     """Whether frames keep each pixel's first burst after their window's middle too
     (``DecoderParams.late_mark_px_per_cell``)."""
@@ -144,6 +153,13 @@ class Track:
     """The latest read frames' leads of the locator's canonical turn (``misturned``)."""
     lapse_us: float | None
     """How long a proof holds (``DecoderParams.proof_lapse_us``); None: for good."""
+    score: float = 0.0
+    """How clearly the pose's detection read the 'L' (``Detection.orientation_score``)."""
+    recheck_us: int | None = None
+    """When a still lock's pose is next taken again from a fresh window
+    (``Receiver._recheck_still``); None: never (a lock under motion)."""
+    updates_seen: int = 0
+    """The receiver's pose updates at the last recheck: more since, and the camera moved."""
     missed: int = 0
     """Frames in a row without the inner locator."""
     proven_at_us: int | None = None
@@ -168,12 +184,22 @@ class Track:
         self.probation -= 1
         return self.probation == 0
 
-    def upright(self, min_turn_lead: float) -> bool:
+    def upright(self, min_turn_lead: float, min_edge_agreement: float) -> bool:
         """Whether each of the last ``turn_frames`` frames read the 'L' upright by
-        ``min_turn_lead``: ``paper``'s proof, as it has no check of its own. One frame is not
-        enough: under motion a pose a quarter turn off reads one now and then."""
+        ``min_turn_lead`` and the ring's swept edges last fired as the motion makes them, each
+        agreeing at ``min_edge_agreement`` or better (``EdgeTracker.agreement``), and, for a
+        lock made under motion, each outer edge has so fired since: ``paper``'s proof, as it
+        has no check of its own. One frame is not enough: under motion a pose a quarter turn off
+        reads one now and then. And a pose a ring width off on a side, or skewed across a
+        corner, reads the 'L' as well as the truth; under motion detection places a side the
+        motion runs along by the little that fires there, and only a later sweep shows it."""
         leads = self.turn_leads
-        return len(leads) == leads.maxlen and min(leads) >= min_turn_lead
+        if len(leads) < leads.maxlen or min(leads) < min_turn_lead:
+            return False
+        tracker = self.tracker
+        if np.any(tracker.agreement < min_edge_agreement):
+            return False
+        return not self.moving or bool(np.all(tracker.best_agreement[:4] >= min_edge_agreement))
 
     def misturned(self, read: FrameRead, min_turn_lead: float) -> bool:
         """Record ``read``; whether the last ``turn_frames`` frames read the locator's 'L'
@@ -353,13 +379,18 @@ class Receiver:
             tracker,
             CellReader(self.config, found.burst_us, stride),
             next_frame=0 if found.moving else -int(window // self.config.frame_us) + 1,
-            burst_frame_read_only=found.moving,
+            moving=found.moving,
             late_mark=late is not None and side >= late,
             probation=self._probation_frames(found.moving) if framed else None,
             turn_leads=deque(maxlen=q.turn_frames),
             lapse_us=None
             if q.proof_lapse_us is None
             else max(q.proof_lapse_us, 2 * self.config.frame_us),
+            score=found.orientation_score,
+            recheck_us=None
+            if found.moving or self.config.detector.still_recheck_us is None
+            else now + window,
+            updates_seen=self.stats.pose_updates,
         )
         self._triage.reset(now, stride)
         self._poses.restart(t_lock, T)
@@ -449,6 +480,8 @@ class Receiver:
         per_ms = self.config.tracker.max_events_per_ms
         while self.state == TRACKING:
             track = self._track
+            if track.recheck_us is not None and self._cursor >= track.recheck_us:
+                out += self._recheck_still(self._cursor)
             start, frame_end = track.reader.window(track.next_frame)
             if self._cursor >= frame_end:  # the frame's bursts are complete
                 out += self._decode(frame_end)
@@ -470,6 +503,38 @@ class Receiver:
             if tracking:
                 out += self._track_events(near)
         return out
+
+    def _recheck_still(self, now: int) -> list[Output]:
+        """Take a still lock's pose again from the window before ``now`` (``detect_still``) if
+        the camera has stood still since (no pose update) and the window reads the 'L' at least
+        as clearly, its corners within half a cell of the held pose's. The lock's own window
+        may have mixed the marker's first frames with what the screen showed before, and a
+        still camera gives the tracker no events to correct the pose with."""
+        track, q = self._track, self.config.detector
+        track.recheck_us = now + q.still_recheck_us
+        if self.stats.pose_updates != track.updates_seen:
+            track.updates_seen = self.stats.pose_updates
+            return []
+        with self._cpu("detect"):
+            try:
+                found = detect_still(
+                    self._buffer.parts_between(now - q.window_us, now), self.config
+                )
+            except MarkerNotFound:
+                return []
+        geo, cam, T = self.config.geometry, self.config.camera, track.tracker.T_cam_world
+        world = geo.locator_corners(self.config.marker_size_m)
+        held = cam.project(world @ T[:3, :3].T + T[:3, 3])
+        half_cell = 0.5 * cell_side_px(self.config, T)
+        if (
+            found.orientation_score < track.score
+            or np.abs(found.corners_px - held).max() > half_cell
+        ):
+            return []
+        track.score = found.orientation_score
+        track.tracker.restart(found.T_cam_world, now)
+        self._poses.append(now, found.T_cam_world)
+        return self._pose_output(now, found.T_cam_world)
 
     def _select_near_edges(self) -> None:
         """Show the tracker only the events near its edges: twice its gate (so that a pose
@@ -496,7 +561,7 @@ class Receiver:
             tracker = self._track.tracker
             with self._cpu("track"):
                 try:
-                    updates = tracker.push(events["xu"], events["yu"], events["t"])
+                    updates = tracker.push(events["xu"], events["yu"], events["t"], events["p"])
                 except ValueError as exc:  # the pose put the marker behind the camera
                     return out + self._lose(int(events["t"][-1]), str(exc))
             for u in updates:
@@ -536,7 +601,7 @@ class Receiver:
                 bursts = self._triage.bursts(t0, t1, box)
                 read = reader.read(m, bursts, self.pose_at)
             self.stats.frames_read += 1
-            if m == 0 and track.burst_frame_read_only:  # ``_postpone`` says why
+            if m == 0 and track.moving:  # ``_postpone`` says why
                 out.append(FrameOutput(read, False))
                 continue
             seen = read.locator_score >= q.min_locator_score
@@ -564,7 +629,9 @@ class Receiver:
             self.cell_px = cell_side_px(self.config, pose)
             if frame.payload_bits:
                 self._verified = (read.t_us, pose)
-            if frame.payload_bits or (not framed and track.upright(q.min_turn_lead)):
+            if frame.payload_bits or (
+                not framed and track.upright(q.min_turn_lead, q.min_edge_agreement)
+            ):
                 track.proven_at_us = read.t_us
             out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]

@@ -50,6 +50,11 @@ _BLOCK = 64
 _SPREAD_BINS = 4
 """Bins of distance to an edge, out to two gates, that tell a firing edge from noise
 (``_edges_firing``): half a gate wide, so that a lagging edge's events pile up in one."""
+REVERSED_AGREEMENT = -1 / 3
+"""An edge whose events agree with the polarity the motion gives it this badly (mean of +1 for
+each with it, -1 against; here twice as many against) is fired by an edge of the other sign."""
+_UNJUDGED = np.zeros(8, np.int64)
+"""``_assign``'s expected polarities when the events come without theirs: none judged."""
 _BIT_INDEX = np.zeros(37, np.int64)
 _BIT_INDEX[[(1 << e) % 37 for e in range(36)]] = range(36)
 """Index of the single set bit of ``1 << e`` at ``(1 << e) % 37`` (the remainders of the
@@ -124,16 +129,17 @@ def _unit_normals(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def edge_polarities(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarray:
-    """(8,) polarity (+1 ON, -1 OFF, 0 unknown) of the events that image ``flow`` fires on the
-    ring's projected edges ``a[i] -> b[i]`` (the outer ones, then the inner ones).
+    """(8,) polarity (+1 ON, -1 OFF, 0 unknown) of the events that image ``flow`` (one (2,)
+    for all, or (8, 2): each edge's own) fires on the ring's projected edges ``a[i] -> b[i]``
+    (the outer ones, then the inner ones).
 
     An edge moving towards its dark side brightens its pixels. The white ring is the bright side
     of its outer edges and the dark gap inside it the dark side of its inner ones. Edges moving
     along themselves (under a quarter of the flow across them) are unknown."""
     normal = _unit_normals(a, b)
     normal *= np.sign(np.sum(((a + b) / 2 - a.mean(axis=0)) * normal, axis=1))[:, None]
-    across = normal @ flow  # outwards
-    known = np.abs(across) >= 0.25 * np.linalg.norm(flow)
+    across = np.sum(normal * flow, axis=-1)  # outwards
+    known = np.abs(across) >= 0.25 * np.linalg.norm(flow, axis=-1)
     return np.where(known, np.sign(across), 0.0) * np.repeat([1.0, -1.0], 4)
 
 
@@ -202,6 +208,7 @@ def _assign(
     xu,
     yu,
     t,
+    pol,
     start,
     a,
     b,
@@ -219,6 +226,8 @@ def _assign(
     n_valid,
     fit,
     spread,
+    expected,
+    tally,
     due_us,
     force_us,
     min_fill,
@@ -228,7 +237,8 @@ def _assign(
     """Add events ``start..`` to the clusters and count, in ``fit``, events in the band around
     the edges, those of them on an edge, and events on an edge since the last update; and per
     edge, in ``spread``, the events by their distance to it in ``_SPREAD_BINS`` bins out to two
-    gates (``_edges_firing``). The edges
+    gates (``_edges_firing``); and per edge of ``expected`` polarity (+1, -1; 0: none), in
+    ``tally``, the events on it of that polarity and of the other (``reversed_edges``). The edges
     a -> b hold at ``ref_us`` and move at the ends' velocities ``va``, ``vb`` (px/us): each event
     is carried back to ``ref_us`` (``carry_us`` at most) along an edge's motion before it is
     measured and binned. Stop after the first event that makes more than one indicator exceed
@@ -293,6 +303,8 @@ def _assign(
                     n_valid[e] += 1
                 sx[e, s], sy[e, s], st[e, s], sd[e, s] = qx[e, j], qy[e, j], t[i], d
                 sum_d[e] += d
+                if expected[e] != 0:
+                    tally[e, 1 if pol[i] * expected[e] < 0 else 0] += 1
                 now_late = _late(sum_d[e], n_valid[e], cap[e], gate[e], min_fill)
                 n_late += now_late - late[e]
                 late[e] = now_late
@@ -517,7 +529,21 @@ class EdgeTracker:
         """The latest ``fit_judgements`` fit ratios, oldest first."""
         self.silent_history: deque[int] = deque(maxlen=config.tracker.silent_updates)
         """``silent_edges`` at the latest pose updates, oldest first."""
+        self._expected = np.zeros(8, np.int64)
+        """Per edge, the polarity its events have while the image sweeps it (``_swept``)."""
+        self._tally = np.zeros((8, 2), np.int64)
+        """Per edge, its events of the expected polarity and of the other, since
+        ``_tally_since_us`` (``reversed_edges``)."""
+        self._tally_since_us = now_us
+        self._reversed_runs = np.zeros(8, np.int64)
+        """Per edge, the latest judged windows in a row in which it fired reversed."""
+        self.agreement = np.full(8, np.nan)
+        """Per edge, its events' agreement with the motion's polarity (-1..1) in the latest
+        closed window, NaN where unjudged (``_judge_polarities``)."""
+        self.best_agreement = np.full(8, np.nan)
+        """Per edge, the best of its ``agreement`` since the tracker began."""
         self._rebin(T_cam_world, now_us)
+        self._expected = self._swept()
 
     @property
     def edges_px(self) -> tuple[np.ndarray, np.ndarray]:
@@ -549,6 +575,11 @@ class EdgeTracker:
         slow motion (few edge events, the blinking locator beside the ring)."""
         if self.contradicted:
             return "an outer edge of the ring shows no events while the marker sweeps it"
+        if self.reversed_edges():
+            return (
+                "a ring edge fires against the motion at the tracked pose, as one a ring width "
+                "off does"
+            )
         history = self.fit_history
         if len(history) < history.maxlen:
             return None
@@ -556,6 +587,50 @@ class EdgeTracker:
         if ratio < self.config.tracker.min_fit_ratio:
             return f"only {ratio:.0%} of the events near the ring lie on its edges"
         return None
+
+    def reversed_edges(self) -> bool:
+        """Whether an edge fired mostly against the motion in each of the last
+        ``reversed_windows`` judged windows (``_judge_polarities``). A right pose's swept edges
+        fire as the motion makes them (the white ring's outer ones brighten moving outwards),
+        while a side fitted a ring width off lies on an edge of the other sign: the white ring's
+        inner edge or the black ring's outer one. Such a pose reads the locator's 'L' and
+        passes every other check, its error in the side's position the camera's in depth and
+        tilt."""
+        return bool(self._reversed_runs.max() >= self.config.tracker.reversed_windows)
+
+    def _judge_polarities(self, now_us: int) -> None:
+        """Close the polarity tally's window once it spans ``polarity_window_us``: an edge with
+        ``min_polarity_events`` swept events fired reversed when they agreed with the expected
+        polarity at ``REVERSED_AGREEMENT`` or worse."""
+        q = self.config.tracker
+        if now_us - self._tally_since_us < q.polarity_window_us:
+            return
+        with_motion, against = self._tally[:, 0], self._tally[:, 1]
+        n = with_motion + against
+        judged = n >= q.min_polarity_events
+        self.agreement = np.where(judged, (with_motion - against) / np.maximum(n, 1), np.nan)
+        self.best_agreement = np.fmax(self.best_agreement, self.agreement)
+        reversed_ = judged & (self.agreement <= REVERSED_AGREEMENT)
+        self._reversed_runs = np.where(
+            reversed_, self._reversed_runs + 1, np.where(judged, 0, self._reversed_runs)
+        )
+        self._tally[:] = 0
+        self._tally_since_us = now_us
+
+    def _swept(self) -> np.ndarray:
+        """(8,) polarity of each outer edge's events (``edge_polarities``) while the image
+        crosses it at ``polarity_sweep_px_per_ms`` or faster and at half the fastest edge's
+        speed across itself, 0 otherwise. Slower, the edge's own events are too few for the
+        sensor's noise (the leak fires ON alone) to leave their polarity, or the velocity's
+        error (fitted to poses that jitter between tilt and shift) can turn its sign. The inner
+        edges are not judged: the blinking locator, a ring width inside, fires both ways within
+        their gates when the ring is thin."""
+        a, b = self._a, self._b
+        velocity = 0.5 * (self._va + self._vb) * 1e3  # px/ms, each edge's middle
+        across = np.abs(np.sum(velocity * _unit_normals(a, b), axis=1))
+        swept = across >= max(self.config.tracker.polarity_sweep_px_per_ms, 0.5 * across.max())
+        swept[4:] = False
+        return np.where(swept, edge_polarities(a, b, velocity), 0).astype(np.int64)
 
     def silent_edges(self, supported: np.ndarray) -> int:
         """Outer edges that hold no fresh events (``supported``: per edge) although the image
@@ -643,16 +718,27 @@ class EdgeTracker:
             )
         if not np.all(np.isfinite(self._project_edges(T))):
             return False  # the last pass put the marker behind the camera
-        self.T_cam_world = T
-        self._slots = None  # clusters of the old pose are meaningless
-        self._n_recent = 0
-        self._rebin(T, now_us)
+        self.restart(T, now_us)
         return True
 
+    def restart(self, T_cam_world: np.ndarray, now_us: int) -> None:
+        """Track on from ``T_cam_world`` at ``now_us``: the clusters and the poses the edges'
+        velocity was fitted to belonged to the old pose."""
+        self.T_cam_world = T_cam_world
+        self._slots = None
+        self._n_recent = 0
+        self._rebin(T_cam_world, now_us)
+        self._expected = self._swept()
+
     # --- streaming -----------------------------------------------------------------------------
-    def push(self, xu: np.ndarray, yu: np.ndarray, t: np.ndarray) -> list[TrackUpdate]:
-        """Feed events (ideal pixels, time-sorted); returns the pose updates they triggered."""
+    def push(
+        self, xu: np.ndarray, yu: np.ndarray, t: np.ndarray, p: np.ndarray | None = None
+    ) -> list[TrackUpdate]:
+        """Feed events (ideal pixels, time-sorted, and polarities ``p``: without them, the
+        edges' polarities go unjudged); returns the pose updates they triggered."""
         updates = []
+        expected = self._expected if p is not None else _UNJUDGED
+        p = np.zeros(len(t), np.int8) if p is None else p
         start = 0
         q = self.config.tracker
         while start < len(t):
@@ -661,6 +747,7 @@ class EdgeTracker:
                 xu,
                 yu,
                 t,
+                p,
                 start,
                 self._a,
                 self._b,
@@ -678,6 +765,8 @@ class EdgeTracker:
                 n_valid,
                 self._fit,
                 self._spread,
+                expected,
+                self._tally,
                 self.last_update_us + q.min_update_interval_us,
                 self.last_update_us + q.max_update_interval_us,
                 q.min_fill,
@@ -715,6 +804,7 @@ class EdgeTracker:
         firing = _edges_firing(self._spread, self._a, self._b, self._gate, q.min_firing_chi2)
         self._spread[:] = 0
         self.silent_history.append(self.silent_edges(supported))
+        self._judge_polarities(now_us)
         if np.count_nonzero(supported) < _MIN_EDGES or not firing[:4].any():
             self._age_out(now_us)
             return None
@@ -726,6 +816,7 @@ class EdgeTracker:
         self.T_cam_world = T
         self._rebin(T, now_us)
         self._fit_velocity(now_us)
+        self._expected = self._swept()
         return TrackUpdate(now_us, T, cost, len(edge))
 
     def _fit_velocity(self, now_us: int) -> None:
