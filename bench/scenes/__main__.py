@@ -26,7 +26,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")  # one core per job: --jobs sets
 from bench.report import write_section
 from bench.scenes.draw import draw
 from bench.scenes.run import earlier_results, run_scene
-from bench.scenes.summary import in_targets, summarise
+from bench.scenes.summary import WRONG_FLOW, in_targets, summarise
 
 DOCS = Path(__file__).resolve().parent.parent.parent / "docs"
 
@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     indices = args.only or list(range(args.scenes))
     if args.targets_only:
-        indices = [i for i in indices if in_targets(draw(args.seed, i).to_dict())]
+        indices = [i for i in indices if in_targets(draw(args.seed, i).to_dict(), WRONG_FLOW)]
     t0 = time.perf_counter()
     done = earlier_results(args.resume, args.seed) if args.resume else {}
     results = run_suite(args.seed, indices, args.jobs, done)

@@ -163,6 +163,7 @@ def run_scene(draw: SceneDraw) -> dict:
     if locks_ms:  # the first lock's first poses: did it lock right?
         first_us = st.lock_times_us[0]
         early = (t >= first_us) & (t < first_us + FIRST_LOCK_MS * 1e3)
+    first_wrong = bool(early.any() and position[early].max() > WRONG_M)
     period = 1e6 / draw.refresh_hz
     on_median, on_p90 = on_per_transition(
         np.concatenate(on_t), np.concatenate(on_pixel), min(BURST_GAP_US, period / 3)
@@ -176,8 +177,8 @@ def run_scene(draw: SceneDraw) -> dict:
         "on_per_transition_p90": None if math.isnan(on_p90) else on_p90,
         "first_lock_ms": first,
         "locked_before_marker": bool(locks_ms and locks_ms[0] < 0),
-        "lock_ok": first is not None and 0 <= first <= LOCK_MS,
-        "first_lock_wrong": bool(early.any() and position[early].max() > WRONG_M),
+        "lock_ok": first is not None and 0 <= first <= LOCK_MS and not first_wrong,
+        "first_lock_wrong": first_wrong,
         "locks": len(locks_ms),
         "losses": st.losses,
         **{
