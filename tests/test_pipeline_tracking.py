@@ -205,19 +205,21 @@ def test_paper_proof_needs_the_swept_edges_to_fire_with_the_motion():
         return Track(tracker, None, 0, moving, False, None, deque([0.8, 0.9, 0.7], maxlen=3), None)
 
     still = track(moving=False)
-    assert np.isnan(still.tracker.agreement).all() and still.upright(0.5, 0.5)
+    assert np.isnan(still.tracker.agreement).all() and still.sides_agree(0.5, every_side=False)
     still.tracker.agreement = np.array([np.nan, 0.95, np.nan, 0.9, *[np.nan] * 4])
-    assert still.upright(0.5, 0.5)
+    assert still.sides_agree(0.5, every_side=False)
     still.tracker.agreement[3] = -0.05  # a side between the ring's edge and the next one
-    assert not still.upright(0.5, 0.5)
-    assert still.upright(0.5, -0.1)
+    assert not still.sides_agree(0.5, every_side=False)
+    assert still.sides_agree(-0.1, every_side=False)
+    assert still.upright(0.5)
     still.turn_leads.append(0.3)
-    assert not still.upright(0.5, -0.1), "the 'L' read barely upright"
+    assert not still.upright(0.5), "the 'L' read barely upright"
     moving = track(moving=True)
     moving.tracker.best_agreement = np.array([np.nan, 0.95, np.nan, 0.9, *[np.nan] * 4])
-    assert not moving.upright(0.5, 0.5), "the top and bottom sides never swept"
+    assert moving.sides_agree(0.5, every_side=False)
+    assert not moving.sides_agree(0.5, every_side=True), "the top and bottom never swept"
     moving.tracker.best_agreement[[0, 2]] = 0.8
-    assert moving.upright(0.5, 0.5)
+    assert moving.sides_agree(0.5, every_side=True)
 
 
 def test_detection_finds_the_one_side_that_fires_against_the_flow():

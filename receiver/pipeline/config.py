@@ -233,10 +233,12 @@ class DecoderParams:
     of the erased bytes are wrong, and under motion a cell an eighth of the contrast away is
     still mostly right."""
     min_edge_agreement: float = 0.5
-    """``paper``'s proof also asks each swept outer edge of the ring to have fired with the
-    motion's polarity at least this well in the tracker's latest window: the truth's agree at
-    +0.9 or more where the motion crosses them squarely, +0.5 where it barely does; poses a
-    ring width off on a side or skewed across a corner read -1 to +0.3 there."""
+    """A lock's first proof also asks each swept outer edge of the ring to have fired with the
+    motion's polarity at least this well in the tracker's latest window (``Track.sides_agree``):
+    the truth's agree at +0.9 or more where the motion crosses them squarely, +0.5 where it
+    barely does; poses a ring width off on a side or skewed across a corner read -1 to +0.5.
+    Later proofs do not: where the motion turns, the velocity fitted to the latest poses points
+    the old way for a few milliseconds, and a right pose's edges then read reversed."""
     turn_frames: int = 3
     """Read frames over which the inner locator's 'L' is judged (``min_turn_lead``)."""
     min_turn_lead: float = 0.5

@@ -16,8 +16,9 @@ while the motion sweeps it (``EdgeTracker.contradicted``) or fires against it
 the inner locator goes unseen for several frames, or its 'L' reads upright barely better than
 turned (``Track.misturned``): a pose a quarter turn off passes every other check. Some wrong
 poses read the 'L' well all the same, so a lock stays unproven until one of its frames passes
-its check (CRC; ``paper``: its 'L' read clearly, its swept edges firing with the motion), and
-is on probation meanwhile (a few frames for a still camera, more under motion:
+its check (CRC; ``paper``: its 'L' read clearly), the first one while the ring's swept edges
+fire with the motion (``Track.sides_agree``; a lock made under motion: every side since), and is
+on probation meanwhile (a few frames for a still camera, more under motion:
 ``Track.failed_probation``). A proof lapses when no frame has passed for a while
 (``DecoderParams.proof_lapse_us``), and the lock goes with it.
 Poses outside a proof come out tentative (``PoseEstimate.verified`` false).
@@ -142,7 +143,7 @@ class Track:
     """The next frame to read; negative for the frames still buffered from before a still lock."""
     moving: bool
     """The lock came from a burst under motion: its frame 0 (the burst's) only times the frame
-    clock, and ``paper``'s proof needs every side of the ring seen firing with the motion."""
+    clock, and its proof needs every side of the ring seen firing with the motion."""
     late_mark: bool
     """Whether frames keep each pixel's first burst after their window's middle too
     (``DecoderParams.late_mark_px_per_cell``)."""
@@ -165,7 +166,8 @@ class Track:
     proven_at_us: int | None = None
     """Time of the latest frame that proved the lock: it passed its check (CRC, framed
     profiles) or, for ``paper`` (no check of its own), ended a run of frames that read the
-    locator's 'L' upright (``upright``). None: unproven so far."""
+    locator's 'L' upright (``upright``), while the ring's sides agreed (``sides_agree``).
+    None: unproven so far."""
 
     def verified_at(self, t_us: int) -> bool:
         """Whether a pose at ``t_us`` comes out verified: a proof before it holds then, or one
@@ -184,22 +186,26 @@ class Track:
         self.probation -= 1
         return self.probation == 0
 
-    def upright(self, min_turn_lead: float, min_edge_agreement: float) -> bool:
+    def upright(self, min_turn_lead: float) -> bool:
         """Whether each of the last ``turn_frames`` frames read the 'L' upright by
-        ``min_turn_lead`` and the ring's swept edges last fired as the motion makes them, each
-        agreeing at ``min_edge_agreement`` or better (``EdgeTracker.agreement``), and, for a
-        lock made under motion, each outer edge has so fired since: ``paper``'s proof, as it
-        has no check of its own. One frame is not enough: under motion a pose a quarter turn off
-        reads one now and then. And a pose a ring width off on a side, or skewed across a
-        corner, reads the 'L' as well as the truth; under motion detection places a side the
-        motion runs along by the little that fires there, and only a later sweep shows it."""
+        ``min_turn_lead``: ``paper``'s proof, as it has no check of its own, with
+        ``sides_agree``. One frame is not enough: under motion a pose a quarter turn off reads
+        one now and then."""
         leads = self.turn_leads
-        if len(leads) < leads.maxlen or min(leads) < min_turn_lead:
-            return False
+        return len(leads) == leads.maxlen and min(leads) >= min_turn_lead
+
+    def sides_agree(self, min_edge_agreement: float, every_side: bool) -> bool:
+        """Whether the ring's swept outer edges last fired as the motion makes them, each
+        agreeing at ``min_edge_agreement`` or better (``EdgeTracker.agreement``), and, with
+        ``every_side``, each outer edge has so fired since the lock. A lock's first proof needs
+        it: a pose a ring width off on a side, or skewed across a corner, reads the 'L' as the
+        truth, and a frame's CRC can pass at a pose a few degrees off. Under motion detection
+        places a side the motion runs along by the little that fires there, and only a later
+        sweep shows it: a lock made under motion waits for ``every_side``."""
         tracker = self.tracker
         if np.any(tracker.agreement < min_edge_agreement):
             return False
-        return not self.moving or bool(np.all(tracker.best_agreement[:4] >= min_edge_agreement))
+        return not every_side or bool(np.all(tracker.best_agreement[:4] >= min_edge_agreement))
 
     def misturned(self, read: FrameRead, min_turn_lead: float) -> bool:
         """Record ``read``; whether the last ``turn_frames`` frames read the locator's 'L'
@@ -629,9 +635,10 @@ class Receiver:
             self.cell_px = cell_side_px(self.config, pose)
             if frame.payload_bits:
                 self._verified = (read.t_us, pose)
-            if frame.payload_bits or (
-                not framed and track.upright(q.min_turn_lead, q.min_edge_agreement)
-            ):
+            checked = frame.payload_bits or (not framed and track.upright(q.min_turn_lead))
+            first = track.proven_at_us is None
+            agree = not first or track.sides_agree(q.min_edge_agreement, every_side=track.moving)
+            if checked and agree:
                 track.proven_at_us = read.t_us
             out.append(frame)
             out += [MessageOutput(read.t_us, msg) for msg in messages]
