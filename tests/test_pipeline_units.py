@@ -13,6 +13,7 @@ from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.events import make_events
+from eventocc.receiver.pipeline import detector
 from eventocc.receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from eventocc.receiver.pipeline.config import DecoderParams, FilterParams, ReceiverConfig
 from eventocc.receiver.pipeline.decoder import (
@@ -34,6 +35,7 @@ from eventocc.receiver.pipeline.detector import (
     quadrilateral,
 )
 from eventocc.receiver.pipeline.filters import EventFilter
+from eventocc.receiver.pipeline.locate import Box
 from eventocc.receiver.pipeline.metrics import pose_errors, umeyama
 from eventocc.receiver.pipeline.pose import PoseHistory, project_ideal, refine_pose
 from eventocc.receiver.pipeline.report import FrameTruth
@@ -399,6 +401,35 @@ def test_fast_reads_dark_cells_lit_by_their_toggling_neighbours_on_the_linear_sc
     frame = geo.inner_locator * rng.uniform(0.9, 1.0, (n, n)) + rng.uniform(0, 0.01, (n, n))
     frame[1:-1, 1:-1] = np.where(toggled, rng.uniform(0.85, 1.0, toggled.shape), dark)
     assert np.array_equal(reader._classify(0, frame, 1000).bits, toggled)
+
+
+def test_detection_retries_each_finer_binning_after_the_coarsest(monkeypatch):
+    # A still marker of 20 px cells whose every other path fails: binned 4 x 4 first, then
+    # 2 x 2, whose corners a thinned readout can leave straight where the coarser ones are not.
+    config = ReceiverConfig(CameraModel(640, 480, K), cells=16, profile="fast")
+    side = 20 * config.geometry.locator_side + 2 * detector.TILE_PX
+    region = detector.BlinkRegion(Box(100, 100, 100 + side, 100 + side), 0.0, 0.5)
+    monkeypatch.setattr(detector, "blinking_region", lambda parts, config: region)
+    monkeypatch.setattr(detector, "latest_burst_us", lambda parts, burst, period: burst)
+    monkeypatch.setattr(detector, "burst_flow", lambda *_: np.zeros(2))
+
+    def miss(*_):
+        raise MarkerNotFound("spatial: the blinking region is not square")
+
+    for path in ("_detect_moving", "_detect_still", "_detect_slow"):
+        monkeypatch.setattr(detector, path, miss)
+    tried = []
+
+    def binned(parts, config, b):
+        tried.append(b)
+        if b > 2:
+            miss()
+        return "found on 2 x 2"
+
+    monkeypatch.setattr(detector, "_detect_binned", binned)
+    events = make_events(np.arange(200), np.zeros(200), np.zeros(200), np.ones(200))
+    assert detector.detect(events, config) == "found on 2 x 2"
+    assert tried == [4, 2]
 
 
 def test_fast_truth_is_the_toggles_and_key_refreshes_are_not_scored():
