@@ -335,13 +335,12 @@ def _less_spill(density: np.ndarray, lit: np.ndarray) -> np.ndarray:
     return density - (side > least) * side * sides - (corner > least) * corner * corners
 
 
-def _two_means(values: np.ndarray, dark: float, bright: float) -> float:
-    """Threshold midway between the means of the dark and the bright ``values``, from Lloyd's
-    iterations started at the ``dark`` and ``bright`` references. The payload's own clusters
-    move with the conditions that the locator's few known cells do not show: under motion a
-    white cell's border pixels fire late and its share drops to ~0.7, while a still cell's
-    pixels all fire."""
-    x = np.sort(values, axis=None)
+def _two_means(x: np.ndarray, dark: float, bright: float) -> float:
+    """Threshold midway between the means of the dark and the bright values ``x`` (sorted),
+    from Lloyd's iterations started at the ``dark`` and ``bright`` references. The payload's
+    own clusters move with the conditions that the locator's few known cells do not show: under
+    motion a white cell's border pixels fire late and its share drops to ~0.7, while a still
+    cell's pixels all fire."""
     total = np.r_[0.0, np.cumsum(x)]  # sum of the k darkest values at [k]
     for _ in range(_SPLIT_ROUNDS):
         k = int(np.searchsorted(x, 0.5 * (dark + bright), side="right"))  # dark: value <= cut
@@ -429,14 +428,16 @@ def _split_levels(levels: np.ndarray, ring_cells: np.ndarray, ring_white: np.nda
     payload = levels[1:-1, 1:-1]
     contrast = max(white_ref - black_ref, 1e-9)
     lo, hi = (black_ref + share * contrast for share in _SPLIT_RANGE)
-    threshold = min(max(_two_means(payload, black_ref, white_ref), lo), hi)
-    bits = payload > threshold
-    ones, zeros = payload[bits], payload[~bits]
+    x = np.sort(payload, axis=None)
+    threshold = min(max(_two_means(x, black_ref, white_ref), lo), hi)
+    k = int(np.searchsorted(x, threshold, side="right"))  # read 0: value <= threshold
+    zeros, ones = x[:k], x[k:]
     separation = 0.0
     if len(ones) and len(zeros):
         spread = float(ones.std() + zeros.std())
         separation = float(ones.mean() - zeros.mean()) / max(spread, 1e-9)
-    return _Split(white_ref, black_ref, threshold, bits.astype(np.uint8), payload, separation)
+    bits = (payload > threshold).astype(np.uint8)
+    return _Split(white_ref, black_ref, threshold, bits, payload, separation)
 
 
 class CellReader:
