@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
 from eventocc.occ.marker import MarkerGeometry
+from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.events import make_events
@@ -34,6 +35,7 @@ from eventocc.receiver.pipeline.detector import (
     quadrilateral,
 )
 from eventocc.receiver.pipeline.filters import EventFilter
+from eventocc.receiver.pipeline.locate import Box
 from eventocc.receiver.pipeline.metrics import pose_errors, umeyama
 from eventocc.receiver.pipeline.pose import PoseHistory, project_ideal, refine_pose
 from eventocc.receiver.pipeline.report import FrameTruth
@@ -361,6 +363,73 @@ def test_cells_read_against_the_locator_ring_and_score_its_contrast():
     assert np.array_equal(read.bits, truth) and read.locator_score > 0.9
     absent = reader._classify(0, np.full_like(frame, 0.3), 10)
     assert absent.locator_score < config.decoder.min_locator_score
+
+
+def test_fast_reads_toggles_of_both_polarities_under_a_thinning_readout():
+    # Densities as a 7.4 Mev/s cap leaves them at 24 px per cell: the cells toggled on fire
+    # 0.2-0.4, those toggled off 0.4-0.95, the untoggled ones a few hundredths at most.
+    config = ReceiverConfig(CameraModel(346, 260, K), cells=16, profile="fast")
+    reader = CellReader(config, first_burst_us=0.0)
+    geo = config.geometry
+    rng = np.random.default_rng(5)
+    n = geo.locator_side
+    toggled = rng.integers(0, 2, (n - 2, n - 2))
+    rising = rng.random((n - 2, n - 2)) < 0.5
+    shape = rising.shape
+    level = np.where(rising, rng.uniform(0.2, 0.4, shape), rng.uniform(0.4, 0.95, shape))
+    frame = geo.inner_locator * rng.uniform(0.7, 0.95, (n, n)) + rng.uniform(0, 0.01, (n, n))
+    frame[1:-1, 1:-1] = np.where(toggled, level, rng.uniform(0.0, 0.03, level.shape))
+    read = reader._classify(0, frame, 1000)
+    assert np.array_equal(read.bits, toggled)
+    assert read.confidence.min() > get_profile("fast").erasure_below
+    assert read.locator_score > 0.9
+
+
+def test_fast_reads_dark_cells_lit_by_their_toggling_neighbours_on_the_linear_scale():
+    # Blur without a cap: every toggled cell fires, while a third of the untoggled ones fire
+    # for their neighbours, up to 0.45; a square root would spread those across the middle.
+    config = ReceiverConfig(CameraModel(346, 260, K), cells=16, profile="fast")
+    reader = CellReader(config, first_burst_us=0.0)
+    geo = config.geometry
+    rng = np.random.default_rng(6)
+    n = geo.locator_side
+    toggled = rng.integers(0, 2, (n - 2, n - 2))
+    spilled = rng.random(toggled.shape) < 0.35
+    dark = np.where(
+        spilled, rng.uniform(0.1, 0.45, toggled.shape), rng.uniform(0, 0.02, toggled.shape)
+    )
+    frame = geo.inner_locator * rng.uniform(0.9, 1.0, (n, n)) + rng.uniform(0, 0.01, (n, n))
+    frame[1:-1, 1:-1] = np.where(toggled, rng.uniform(0.85, 1.0, toggled.shape), dark)
+    assert np.array_equal(reader._classify(0, frame, 1000).bits, toggled)
+
+
+def test_detection_retries_each_finer_binning_after_the_coarsest(monkeypatch):
+    # A still marker of 20 px cells whose every other path fails: binned 4 x 4 first, then
+    # 2 x 2, whose corners a thinned readout can leave straight where the coarser ones are not.
+    config = ReceiverConfig(CameraModel(640, 480, K), cells=16, profile="fast")
+    side = 20 * config.geometry.locator_side + 2 * detector.TILE_PX
+    region = detector.BlinkRegion(Box(100, 100, 100 + side, 100 + side), 0.0, 0.5)
+    monkeypatch.setattr(detector, "blinking_region", lambda parts, config: region)
+    monkeypatch.setattr(detector, "latest_burst_us", lambda parts, burst, period: burst)
+    monkeypatch.setattr(detector, "burst_flow", lambda *_: np.zeros(2))
+
+    def miss(*_):
+        raise MarkerNotFound("spatial: the blinking region is not square")
+
+    for path in ("_detect_moving", "_detect_still", "_detect_slow"):
+        monkeypatch.setattr(detector, path, miss)
+    tried = []
+
+    def binned(parts, config, b):
+        tried.append(b)
+        if b > 2:
+            miss()
+        return "found on 2 x 2"
+
+    monkeypatch.setattr(detector, "_detect_binned", binned)
+    events = make_events(np.arange(200), np.zeros(200), np.zeros(200), np.ones(200))
+    assert detector.detect(events, config) == "found on 2 x 2"
+    assert tried == [4, 2]
 
 
 def test_fast_truth_is_the_toggles_and_key_refreshes_are_not_scored():

@@ -31,7 +31,9 @@ Under hand-held motion four things keep the bits:
 
 The inner locator's known white and black cells give the reference densities and a score that
 says whether the marker is really there; the payload's own two clusters of densities place the
-threshold between them, and a cell's distance from it its confidence.
+threshold between them, and a cell's distance from it its confidence (``fast`` on the linear or
+the square-root scale of the densities, whichever separates the clusters more: its two
+polarities can fire unlike).
 
 The frame clock is re-estimated from the ON bursts of the locator's white cells, row by row, at
 every frame where the locator rises, so neither a display/receiver clock mismatch nor the
@@ -333,13 +335,12 @@ def _less_spill(density: np.ndarray, lit: np.ndarray) -> np.ndarray:
     return density - (side > least) * side * sides - (corner > least) * corner * corners
 
 
-def _two_means(values: np.ndarray, dark: float, bright: float) -> float:
-    """Threshold midway between the means of the dark and the bright ``values``, from Lloyd's
-    iterations started at the ``dark`` and ``bright`` references. The payload's own clusters
-    move with the conditions that the locator's few known cells do not show: under motion a
-    white cell's border pixels fire late and its share drops to ~0.7, while a still cell's
-    pixels all fire."""
-    x = np.sort(values, axis=None)
+def _two_means(x: np.ndarray, dark: float, bright: float) -> float:
+    """Threshold midway between the means of the dark and the bright values ``x`` (sorted),
+    from Lloyd's iterations started at the ``dark`` and ``bright`` references. The payload's
+    own clusters move with the conditions that the locator's few known cells do not show: under
+    motion a white cell's border pixels fire late and its share drops to ~0.7, while a still
+    cell's pixels all fire."""
     total = np.r_[0.0, np.cumsum(x)]  # sum of the k darkest values at [k]
     for _ in range(_SPLIT_ROUNDS):
         k = int(np.searchsorted(x, 0.5 * (dark + bright), side="right"))  # dark: value <= cut
@@ -399,6 +400,44 @@ def on_events_per_pixel(parts: list[np.ndarray], corners_px: np.ndarray, blink_h
     span_us = int(parts[-1]["t"][-1]) - int(parts[0]["t"][0])
     blinks = max(span_us * blink_hz / 1e6, 1.0)
     return count / max(0.5 * np.count_nonzero(mask) * blinks, 1.0)
+
+
+@dataclass(frozen=True)
+class _Split:
+    """A frame's payload split into bits, on one scale of its densities."""
+
+    white_ref: float
+    black_ref: float
+    """Medians of the locator ring's white and black cells."""
+    threshold: float
+    bits: np.ndarray
+    payload: np.ndarray
+    """(n - 2, n - 2) the payload's densities on this scale."""
+    separation: float
+    """The distance between the means of the cells read 1 and read 0 over the sum of their
+    standard deviations (0 if either is empty): how clearly this scale splits them."""
+
+
+def _split_levels(levels: np.ndarray, ring_cells: np.ndarray, ring_white: np.ndarray) -> _Split:
+    """The payload of (n, n) ``levels`` split at the threshold between its own two clusters
+    (``_two_means``), kept within ``_SPLIT_RANGE`` of the way from the ring's black cells'
+    median to its white cells'."""
+    ring = levels[ring_cells[:, 1], ring_cells[:, 0]]
+    white_ref = float(np.median(ring[ring_white]))
+    black_ref = float(np.median(ring[~ring_white]))
+    payload = levels[1:-1, 1:-1]
+    contrast = max(white_ref - black_ref, 1e-9)
+    lo, hi = (black_ref + share * contrast for share in _SPLIT_RANGE)
+    x = np.sort(payload, axis=None)
+    threshold = min(max(_two_means(x, black_ref, white_ref), lo), hi)
+    k = int(np.searchsorted(x, threshold, side="right"))  # read 0: value <= threshold
+    zeros, ones = x[:k], x[k:]
+    separation = 0.0
+    if len(ones) and len(zeros):
+        spread = float(ones.std() + zeros.std())
+        separation = float(ones.mean() - zeros.mean()) / max(spread, 1e-9)
+    bits = (payload > threshold).astype(np.uint8)
+    return _Split(white_ref, black_ref, threshold, bits, payload, separation)
 
 
 class CellReader:
@@ -633,34 +672,42 @@ class CellReader:
     def _classify(self, m: int, density: np.ndarray, pixels: int) -> FrameRead:
         """Bits from the cells' event densities, against the ring's white and black cells,
         once less what the lit neighbours spill into each cell (``_less_spill``)."""
-        white_ref, black_ref, _, bits = self._split(density)
+        bits = self._split(density).bits
         # The locator's readings take the densities as they are: the spill's fit assumes the
         # 'L' upright, which they judge.
-        score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
-        cells = self._ring_cells
-        ring = density[cells[:, 1], cells[:, 0]]
-        turns = turn_readings(density, self.config.geometry) / max(float(ring.mean()), 1e-9)
-        raw = density
-        for _ in range(2):  # the second pass fits the spill on the bits the first corrected
-            density = _less_spill(raw, self._lit(bits))
-            white_ref, black_ref, threshold, bits = self._split(density)
-        payload = density[1:-1, 1:-1]
-        sure = self.config.decoder.sure_contrast * max(white_ref - black_ref, 1e-9)
-        confidence = np.clip(np.abs(payload - threshold) / sure, 0.0, 1.0)
-        return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
-
-    def _split(self, density: np.ndarray) -> tuple[float, float, float, np.ndarray]:
-        """(white and black references of the ring, threshold, payload bits) of (n, n)
-        densities."""
         cells = self._ring_cells
         ring = density[cells[:, 1], cells[:, 0]]
         white_ref = float(np.median(ring[self._ring_white]))
         black_ref = float(np.median(ring[~self._ring_white]))
-        payload = density[1:-1, 1:-1]
-        contrast = max(white_ref - black_ref, 1e-9)
-        lo, hi = (black_ref + share * contrast for share in _SPLIT_RANGE)
-        threshold = min(max(_two_means(payload, black_ref, white_ref), lo), hi)
-        return white_ref, black_ref, threshold, (payload > threshold).astype(np.uint8)
+        score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
+        turns = turn_readings(density, self.config.geometry) / max(float(ring.mean()), 1e-9)
+        raw = density
+        for _ in range(2):  # the second pass fits the spill on the bits the first corrected
+            split = self._split(_less_spill(raw, self._lit(bits)))
+            bits = split.bits
+        sure = self.config.decoder.sure_contrast * max(split.white_ref - split.black_ref, 1e-9)
+        confidence = np.clip(np.abs(split.payload - split.threshold) / sure, 0.0, 1.0)
+        return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
+
+    def _split(self, density: np.ndarray) -> _Split:
+        """The payload of (n, n) densities split against the ring's white and black cells:
+        ``fast`` on the scale, linear or square root, that separates its two clusters more
+        (``_Split.separation``), the other profiles on the linear one.
+
+        A ``fast`` cell toggles either way, and the two polarities fire unlike: ON events bunch
+        at the switch, OFF events trail over milliseconds, so a readout that drops the excess
+        of each millisecond keeps a far smaller share of the ON bursts than of the OFF ones.
+        The toggled cells then spread over a range many times the untoggled ones' counting
+        noise, and a threshold midway between the clusters' means falls among the weaker
+        polarity's cells. The square root evens such spreads (it is the scale on which a
+        count's noise is the same at any rate); where the toggled cells all fire and the
+        untoggled ones spread instead (blur lights a dark cell from its toggling neighbours),
+        it widens the untoggled ones' spread, and the linear scale separates better."""
+        linear = _split_levels(density, self._ring_cells, self._ring_white)
+        if not self.both_polarities:
+            return linear
+        root = _split_levels(np.sqrt(np.maximum(density, 0.0)), self._ring_cells, self._ring_white)
+        return root if root.separation > linear.separation else linear
 
     def _lit(self, bits: np.ndarray) -> np.ndarray:
         """(n, n) bool: the locator ring as it is drawn around the payload ``bits``."""

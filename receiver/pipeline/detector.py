@@ -467,8 +467,12 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
             lambda: _detect_slow(parts, before, region, config),
         ]
     cell_px = region_cell_px(region, config)
-    if (b := bin_factor(cell_px, config)) > 1:
-        paths.append(lambda: _detect_binned(parts, config, b))
+    # The coarsest binning first, then each finer one: a thinned readout's corners can come out
+    # ragged on one binning and straight on another, with which of them varying by blink.
+    b = bin_factor(cell_px, config)
+    while b > 1:
+        paths.append(lambda b=b: _detect_binned(parts, config, b))
+        b //= 2
     # A detection that did not read the 'L' (not ``oriented``) stands only if no later path
     # reads it: a still camera's noise can fake a flow whose burst shows no 'L', where the
     # still path reads it clearly.
@@ -489,8 +493,9 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
 
 
 def bin_factor(cell_px: float, config: ReceiverConfig) -> int:
-    """Pixels binned per side (1, 2 or 4) for the still path's last resort on sparse events:
-    as many as leave ``DetectorParams.min_binned_cell_px`` per cell and divide the sensor."""
+    """Pixels binned per side (1, 2 or 4) for the still path's last resorts on sparse events,
+    the coarsest of them (``detect`` tries each finer one after it): as many as leave
+    ``DetectorParams.min_binned_cell_px`` per cell and divide the sensor."""
     cam, least = config.camera, config.detector.min_binned_cell_px
     b = 1
     while b < 4 and cell_px / (2 * b) >= least and cam.width % (2 * b) == 0 == cam.height % (2 * b):
