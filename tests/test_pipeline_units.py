@@ -416,19 +416,20 @@ def test_detection_retries_each_finer_binning_after_the_coarsest(monkeypatch):
     def miss(*_):
         raise MarkerNotFound("spatial: the blinking region is not square")
 
-    for path in ("_detect_moving", "_detect_still", "_detect_slow"):
+    for path in ("_detect_moving", "detect_still", "_detect_slow"):
         monkeypatch.setattr(detector, path, miss)
     tried = []
+    found = detector.Detection(np.zeros((4, 2)), np.eye(4), 0, 0.0, 30.0, 1.0, 1.0, np.zeros(2))
 
     def binned(parts, config, b):
         tried.append(b)
         if b > 2:
             miss()
-        return "found on 2 x 2"
+        return found
 
     monkeypatch.setattr(detector, "_detect_binned", binned)
     events = make_events(np.arange(200), np.zeros(200), np.zeros(200), np.ones(200))
-    assert detector.detect(events, config) == "found on 2 x 2"
+    assert detector.detect(events, config) is found
     assert tried == [4, 2]
 
 
