@@ -471,21 +471,23 @@ def test_a_still_lock_takes_its_pose_again_from_a_fresh_window(
     tmp_path, monkeypatch, shift_cells, taken
 ):
     # A window after a still lock the receiver reads the marker again (its lock's window may
-    # have mixed the first frames with what came before). Here the fresh reading is the true
-    # one moved sideways: within half a cell of the held pose it replaces it; a cell away it
-    # is another lock's and is left.
-    real = receiver_module.detect_still
+    # have mixed the first frames with what came before). Here the readings after the lock's
+    # are the true one moved sideways: within half a cell of the held pose they replace it; a
+    # cell away they are another lock's and are left.
+    real, locked = receiver_module.detect, []
 
     def moved(parts, config):
         found = real(parts, config)
+        if not locked:  # the lock's own detection
+            locked.append(found)
+            return found
         step = np.array([shift_cells * cell_side_px(config, found.T_cam_world), 0.0])
         corners = found.corners_px + step
         world = config.geometry.locator_corners(config.marker_size_m)
         T = pnp(corners, world, config.camera)
-        score = found.orientation_score + 0.1
-        return replace(found, corners_px=corners, T_cam_world=T, orientation_score=score)
+        return replace(found, corners_px=corners, T_cam_world=T)
 
-    monkeypatch.setattr(receiver_module, "detect_still", moved)
+    monkeypatch.setattr(receiver_module, "detect", moved)
     log, _ = _run(tmp_path, [(0.0, _view(tilt=10)), (0.5, _view(tilt=10))], 0.5)
     t, poses = np.array(log.pose_t), np.array(log.poses)
     lock = log.receiver.stats.lock_times_us[0]

@@ -61,11 +61,10 @@ from eventocc.receiver.pipeline.detector import (
     Detection,
     MarkerNotFound,
     detect,
-    detect_still,
     nearest_turn,
 )
 from eventocc.receiver.pipeline.filters import EventFilter
-from eventocc.receiver.pipeline.pose import PoseHistory, project_ideal
+from eventocc.receiver.pipeline.pose import PoseHistory, pnp, project_ideal
 from eventocc.receiver.pipeline.smoothing import PoseSmoother
 from eventocc.receiver.pipeline.tracker import EdgeTracker
 from eventocc.receiver.pipeline.triage import EventTriage
@@ -154,8 +153,8 @@ class Track:
     """The latest read frames' leads of the locator's canonical turn (``misturned``)."""
     lapse_us: float | None
     """How long a proof holds (``DecoderParams.proof_lapse_us``); None: for good."""
-    score: float = 0.0
-    """How clearly the pose's detection read the 'L' (``Detection.orientation_score``)."""
+    rechecked: list[np.ndarray] = field(default_factory=list)
+    """The corners the rechecks found since the camera last moved (``Receiver._recheck_still``)."""
     recheck_us: int | None = None
     """When a still lock's pose is next taken again from a fresh window
     (``Receiver._recheck_still``); None: never (a lock under motion)."""
@@ -392,7 +391,6 @@ class Receiver:
             lapse_us=None
             if q.proof_lapse_us is None
             else max(q.proof_lapse_us, 2 * self.config.frame_us),
-            score=found.orientation_score,
             recheck_us=None
             if found.moving or self.config.detector.still_recheck_us is None
             else now + window,
@@ -511,36 +509,34 @@ class Receiver:
         return out
 
     def _recheck_still(self, now: int) -> list[Output]:
-        """Take a still lock's pose again from the window before ``now`` (``detect_still``) if
-        the camera has stood still since (no pose update) and the window reads the 'L' at least
-        as clearly, its corners within half a cell of the held pose's. The lock's own window
-        may have mixed the marker's first frames with what the screen showed before, and a
-        still camera gives the tracker no events to correct the pose with."""
+        """Take a still lock's pose again from the window before ``now``: from the mean of the
+        corners that the rechecks since the camera last moved (made a pose update) found, each
+        a still detection within half a cell of the held pose's corners. The lock's own window
+        may have mixed the marker's first frames with what the screen showed before, and a still
+        camera gives the tracker no events to correct the pose with."""
         track, q = self._track, self.config.detector
         track.recheck_us = now + q.still_recheck_us
         if self.stats.pose_updates != track.updates_seen:
             track.updates_seen = self.stats.pose_updates
+            track.rechecked.clear()
             return []
         with self._cpu("detect"):
             try:
-                found = detect_still(
-                    self._buffer.parts_between(now - q.window_us, now), self.config
-                )
+                found = detect(self._buffer.parts_between(now - q.window_us, now), self.config)
             except MarkerNotFound:
                 return []
+        if found.moving:
+            return []
         geo, cam, T = self.config.geometry, self.config.camera, track.tracker.T_cam_world
         world = geo.locator_corners(self.config.marker_size_m)
         held = cam.project(world @ T[:3, :3].T + T[:3, 3])
-        half_cell = 0.5 * cell_side_px(self.config, T)
-        if (
-            found.orientation_score < track.score
-            or np.abs(found.corners_px - held).max() > half_cell
-        ):
+        if np.abs(found.corners_px - held).max() > 0.5 * cell_side_px(self.config, T):
             return []
-        track.score = found.orientation_score
-        track.tracker.restart(found.T_cam_world, now)
-        self._poses.append(now, found.T_cam_world)
-        return self._pose_output(now, found.T_cam_world)
+        track.rechecked.append(found.corners_px)
+        T = pnp(np.mean(track.rechecked, axis=0), world, cam)
+        track.tracker.restart(T, now)
+        self._poses.append(now, T)
+        return self._pose_output(now, T)
 
     def _select_near_edges(self) -> None:
         """Show the tracker only the events near its edges: twice its gate (so that a pose
