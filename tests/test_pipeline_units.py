@@ -515,7 +515,7 @@ def test_detection_prefers_a_path_that_reads_the_l(monkeypatch):
 
     def found(oriented: bool) -> detector.Detection:
         return detector.Detection(
-            np.zeros((4, 2)), np.eye(4), 0, 0.0, 30.0, 1.0, 0.5, np.zeros(2), oriented
+            np.zeros((4, 2)), np.eye(4), 0, 0.0, 30.0, 1.0, 0.5, np.zeros(2), oriented=oriented
         )
 
     def miss(*args):

@@ -139,6 +139,9 @@ class Detection:
     orientation_score: float
     flow_px_per_ms: np.ndarray
     """Image flow found at the burst; zero for a still camera."""
+    refined: bool = False
+    """The still path's corners lie on the locator's edges (``edges.refine_corners`` could
+    tell them); otherwise they are the outline's, a pixel or two off on some windows."""
     oriented: bool = True
     """Whether the burst showed the 'L' clearly. Under motion the ring may fit while it does
     not (at 4 px per cell few bursts do): the corner order is then the burst's best guess, which
@@ -579,11 +582,21 @@ def detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
         raise MarkerNotFound(
             f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
         )
-    corners = refine_corners(corners, lit, config.geometry, cam)
+    refined = refine_corners(corners, lit, config.geometry, cam)
     # The burst time refers to the latest whole period inside the window.
     last = burst + np.floor((t_end - burst) / period) * period
-    T = _solve_pnp(corners, config)
-    return Detection(corners, T, t_end, float(last), config.blink_hz, ratio, score, np.zeros(2))
+    T = _solve_pnp(refined, config)
+    return Detection(
+        refined,
+        T,
+        t_end,
+        float(last),
+        config.blink_hz,
+        ratio,
+        score,
+        np.zeros(2),
+        refined=refined is not corners,
+    )
 
 
 def _period_match(heat: np.ndarray, triplets: np.ndarray, mask: np.ndarray) -> float:

@@ -154,7 +154,8 @@ class Track:
     lapse_us: float | None
     """How long a proof holds (``DecoderParams.proof_lapse_us``); None: for good."""
     rechecked: list[np.ndarray] = field(default_factory=list)
-    """The corners the rechecks found since the camera last moved (``Receiver._recheck_still``)."""
+    """Since the camera last moved, the corners refined to the locator's edges that the lock's
+    detection and the rechecks found (``Receiver._recheck_still``)."""
     recheck_us: int | None = None
     """When a still lock's pose is next taken again from a fresh window
     (``Receiver._recheck_still``); None: never (a lock under motion)."""
@@ -391,6 +392,7 @@ class Receiver:
             lapse_us=None
             if q.proof_lapse_us is None
             else max(q.proof_lapse_us, 2 * self.config.frame_us),
+            rechecked=[found.corners_px] if found.refined else [],
             recheck_us=None
             if found.moving or self.config.detector.still_recheck_us is None
             else now + window,
@@ -510,10 +512,12 @@ class Receiver:
 
     def _recheck_still(self, now: int) -> list[Output]:
         """Take a still lock's pose again from the window before ``now``: from the mean of the
-        corners that the rechecks since the camera last moved (made a pose update) found, each
-        a still detection within half a cell of the held pose's corners. The lock's own window
-        may have mixed the marker's first frames with what the screen showed before, and a still
-        camera gives the tracker no events to correct the pose with."""
+        corners refined to the locator's edges (``Detection.refined``) that the lock and the
+        rechecks since the camera last moved (made a pose update) found, each a still detection
+        within half a cell of the held pose's corners. A still camera gives the tracker no events
+        to correct the pose with, and a window's outline corners can lie a pixel or two off
+        (one that mixed the marker's first frames with what the screen showed before: 3.5 cm at
+        1.7 m), where refined ones from another window hold it within a few millimetres."""
         track, q = self._track, self.config.detector
         track.recheck_us = now + q.still_recheck_us
         if self.stats.pose_updates != track.updates_seen:
@@ -525,7 +529,7 @@ class Receiver:
                 found = detect(self._buffer.parts_between(now - q.window_us, now), self.config)
             except MarkerNotFound:
                 return []
-        if found.moving:
+        if found.moving or not found.refined:
             return []
         geo, cam, T = self.config.geometry, self.config.camera, track.tracker.T_cam_world
         world = geo.locator_corners(self.config.marker_size_m)
