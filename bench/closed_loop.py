@@ -218,11 +218,11 @@ def report(fixed: list[FixedPoint], auto: list[AutoRun], revisions: dict[str, st
     return "\n".join(lines)
 
 
-def _section_revision() -> str:
+def _section_revision(benchmarks_md: Path) -> str:
     """The commit the present section names: the run that wrote the results file."""
     from bench.stale import sections
 
-    for section in sections(BENCHMARKS_MD.read_text()):
+    for section in sections(benchmarks_md.read_text()):
         if section.name == "closed_loop" and section.commit:
             dirty = " with uncommitted code changes" if section.dirty else " (clean)"
             return f", commit {section.commit}{dirty}"
@@ -254,12 +254,14 @@ def main(argv: list[str] | None = None) -> None:
     revisions = {"sweep": REVISION, "auto": REVISION}
     if args.report_only:
         kept = json.loads(results.read_text())
-        _write(*_points(kept), kept["revisions"])
+        _write(*_points(kept), kept["revisions"], args.out)
         return
     if (args.resume or args.auto_only) and results.exists():
         kept = json.loads(results.read_text())
         fixed, kept_auto = _points(kept)
-        revisions["sweep"] = kept.get("revisions", {}).get("sweep") or _section_revision()
+        revisions["sweep"] = kept.get("revisions", {}).get("sweep") or _section_revision(
+            args.out / BENCHMARKS_MD.name
+        )
         if not args.auto_only:
             revisions["auto"] = kept.get("revisions", revisions)["auto"]
             auto = kept_auto
@@ -298,7 +300,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.no_write:
         print(report(fixed, auto, revisions))
         return
-    _write(fixed, auto, revisions)
+    _write(fixed, auto, revisions, args.out)
 
 
 def _points(kept: dict) -> tuple[list[FixedPoint], list[AutoRun]]:
@@ -308,12 +310,16 @@ def _points(kept: dict) -> tuple[list[FixedPoint], list[AutoRun]]:
     return fixed, auto
 
 
-def _write(fixed: list[FixedPoint], auto: list[AutoRun], revisions: dict[str, str]) -> None:
+def _write(
+    fixed: list[FixedPoint], auto: list[AutoRun], revisions: dict[str, str], out: Path
+) -> None:
+    """The section into ``out``'s BENCHMARKS.md (the docs' own by default)."""
     write_section(
         "closed_loop",
         "Closed loop: the transmitter's auto mode against the best fixed settings",
         "NUMBA_NUM_THREADS=1 nice .venv/bin/python -m bench.closed_loop",
         report(fixed, auto, revisions),
+        out / BENCHMARKS_MD.name,
     )
 
 
