@@ -89,7 +89,7 @@ class LinkChoice:
 
 @cache
 def _packed_bytes(profile: str, cells: int) -> int:
-    return SYMBOL_SIZE * symbols_per_frame(FrameCodec(get_profile(profile), cells).symbol_size)
+    return SYMBOL_SIZE * symbols_per_frame(FrameCodec(get_profile(profile), cells).room)
 
 
 def start_choice(display_hz: float) -> LinkChoice:

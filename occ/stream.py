@@ -125,7 +125,7 @@ class StreamEncoder:
             size = SYMBOL_SIZE if packed else self._codec.symbol_size
             self._fountain = FountainEncoder(message, digest, name, size, self.profile)
             if packed:
-                self.symbols_per_frame = symbols_per_frame(self._codec.symbol_size)
+                self.symbols_per_frame = symbols_per_frame(self._codec.room)
             self.symbols = math.ceil(self._fountain.layout.cycle / self.symbols_per_frame)
         else:
             self._paper = PaperEncoder(message, cells)
@@ -174,7 +174,7 @@ class StreamEncoder:
                 m = self.symbols_per_frame
                 block, k, esi, run = self._fountain.run(self.symbol_start + j * m, m)
                 header = FrameHeader(self.stream_id, block, k, esi, FLAG_PACKED)
-                bits = self._codec.encode(header, run.ljust(self._codec.symbol_size, b"\0"))
+                bits = self._codec.encode(header, run.ljust(self._codec.room, b"\0"))
             elif self.profile.framed:
                 block, k, esi, symbol = self._fountain.symbol(j)
                 header = FrameHeader(self.stream_id, block, k, esi)

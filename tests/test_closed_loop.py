@@ -6,8 +6,7 @@ change, controller fed by the receiver's frame reports)."""
 from __future__ import annotations
 
 from bench.loop_sim import LoopScene, random_message, run_link
-from eventocc.occ.link_policy import LinkPolicy, PolicyConfig, px_at
-from eventocc.occ.packing import SYMBOL_SIZE
+from eventocc.occ.link_policy import LinkChoice, LinkPolicy, PolicyConfig, px_at
 from eventocc.receiver.camera import CameraModel
 
 MOVE_S = 0.8
@@ -39,7 +38,7 @@ def test_a_camera_carried_away_mid_message_steps_down_and_the_message_completes(
 
     assert run.message_ok, "the message must come out once, byte-exact and verified"
     assert run.message_done_s is not None and run.message_done_s > after[0].t_s
-    # The symbols collected near count: far away alone, N = 16 robust (one symbol in each of
-    # 30 data frames a second) would need over twice as long as it took.
-    far_alone_s = len(message) / (SYMBOL_SIZE * 30)
+    # The symbols collected near count: far away alone, N = 16 robust (its 30 data frames a
+    # second) would need over twice as long as it took.
+    far_alone_s = 8 * len(message) / LinkChoice("robust", 16).payload_bps(loop.display_hz)
     assert run.message_done_s - after[0].t_s < 0.5 * far_alone_s

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from eventocc.occ.frame_codec import FrameCodec
 from eventocc.occ.packing import SYMBOL_SIZE
+from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import StreamDecoder, StreamEncoder
 
 MESSAGE = bytes(np.random.default_rng(7).integers(0, 256, 3000, dtype=np.uint8))
@@ -31,12 +33,27 @@ def test_a_packed_stream_alone_decodes(profile: str, cells: int) -> None:
 
 
 def test_packed_frames_carry_whole_symbols_of_one_size() -> None:
-    for cells, per_frame in ((16, 1), (32, 6), (64, 30), (128, 126)):
+    for cells, per_frame in ((16, 2), (32, 14), (64, 62), (128, 254)):
         enc = StreamEncoder(MESSAGE, cells=cells, packed=True)
         assert enc.symbols_per_frame == per_frame
     dec = StreamDecoder(cells=64)
     dec.push(StreamEncoder(MESSAGE, cells=64, packed=True).payload_bits(0))
-    assert dec.verified_bits == 8 * 30 * SYMBOL_SIZE
+    assert dec.verified_bits == 8 * 62 * SYMBOL_SIZE
+
+
+@pytest.mark.parametrize("cells", [16, 24, 32, 48, 64, 72, 80])
+def test_a_packed_frame_fills_the_room_an_unpacked_one_leaves(cells: int) -> None:
+    """The symbol size divides these densities' rooms: a packed frame carries all of it, an
+    unpacked one its RaptorQ-aligned symbol (80 of N = 32's 84 bytes)."""
+    room = FrameCodec(get_profile("robust"), cells).room
+    carried = {}
+    for packed in (False, True):
+        dec = StreamDecoder(cells=cells)
+        dec.push(StreamEncoder(MESSAGE, cells=cells, packed=packed).payload_bits(0))
+        carried[packed] = dec.verified_bits // 8
+    assert carried[True] == room >= carried[False]
+    if cells == 32:
+        assert carried == {False: 80, True: 84}
 
 
 def test_progress_survives_density_and_profile_changes() -> None:
