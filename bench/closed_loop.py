@@ -208,21 +208,49 @@ def report(fixed: list[FixedPoint], auto: list[AutoRun], revisions: dict[str, st
         f"Wall time on one job, the machine shared: the sweep {wall_fixed / 60:.0f} min, the "
         f"auto runs {wall_auto / 60:.0f} min.",
     ]
-    sweep, auto_rev = (revisions[k].removeprefix(", ") for k in ("sweep", "auto"))
-    if sweep != auto_rev:
+    sweeps, autos = (runs_at(revisions, kind) for kind in ("sweep", "auto"))
+    if len(set(revisions.values())) > 1:
         lines.append(
-            f"The fixed sweep ran at {sweep}; the auto runs (`--auto-only`, after a change to "
-            f"the controller alone) at {auto_rev}; the machine line above names the commit "
-            "that wrote this text (`--report-only`) where it differs."
+            f"The fixed sweep ran at {sweeps}; the auto runs (`--auto-only`, `--resume`) at "
+            f"{autos}; the machine line above names the commit that wrote this text "
+            "(`--report-only`) where it differs."
         )
     return "\n".join(lines)
+
+
+def scene_key(kind: str, distance: float, motion: str) -> str:
+    """The results file's key for the commit a scene's ``kind`` ("sweep", "auto") ran at."""
+    return f"{kind} {distance:g} m {motion}"
+
+
+def runs_at(revisions: dict[str, str], kind: str) -> str:
+    """ "commit X (clean) (0.6 m still, ...)" for each commit the scenes' ``kind`` ran at."""
+    scenes: dict[str, list[str]] = {}
+    for key, revision in revisions.items():
+        if key.startswith(f"{kind} "):
+            scenes.setdefault(revision.removeprefix(", "), []).append(key.removeprefix(f"{kind} "))
+    if len(scenes) == 1:
+        return next(iter(scenes))
+    return "; ".join(f"{rev} ({', '.join(names)})" for rev, names in scenes.items())
+
+
+def per_scene(kept: dict[str, str], fixed: list[FixedPoint], auto: list[AutoRun]) -> dict[str, str]:
+    """The commit of every scene's sweep and auto run; an older file names one of each for
+    all its scenes (``kept["sweep"]``, ``kept["auto"]``)."""
+    out: dict[str, str] = {}
+    for kind, points in (("sweep", fixed), ("auto", auto)):
+        for p in points:
+            key = scene_key(kind, p.distance_m, p.motion)
+            out[key] = kept.get(key) or kept.get(kind) or ""
+    return out
 
 
 def _section_revision(benchmarks_md: Path) -> str:
     """The commit the present section names: the run that wrote the results file."""
     from bench.stale import sections
 
-    for section in sections(benchmarks_md.read_text()):
+    text = benchmarks_md.read_text() if benchmarks_md.exists() else ""
+    for section in sections(text):
         if section.name == "closed_loop" and section.commit:
             dirty = " with uncommitted code changes" if section.dirty else " (clean)"
             return f", commit {section.commit}{dirty}"
@@ -251,19 +279,19 @@ def main(argv: list[str] | None = None) -> None:
     results = args.out / "results" / "closed_loop.json"
     fixed: list[FixedPoint] = []
     auto: list[AutoRun] = []
-    revisions = {"sweep": REVISION, "auto": REVISION}
+    revisions: dict[str, str] = {}
+    """Per scene, the commit its sweep and its auto run ran at (``scene_key``)."""
     if args.report_only:
         kept = json.loads(results.read_text())
-        _write(*_points(kept), kept["revisions"], args.out)
+        fixed, auto = _points(kept)
+        _write(fixed, auto, per_scene(kept["revisions"], fixed, auto), args.out)
         return
     if (args.resume or args.auto_only) and results.exists():
         kept = json.loads(results.read_text())
         fixed, kept_auto = _points(kept)
-        revisions["sweep"] = kept.get("revisions", {}).get("sweep") or _section_revision(
-            args.out / BENCHMARKS_MD.name
-        )
+        old = {"sweep": _section_revision(args.out / BENCHMARKS_MD.name), **kept["revisions"]}
+        revisions = per_scene(old, fixed, [] if args.auto_only else kept_auto)
         if not args.auto_only:
-            revisions["auto"] = kept.get("revisions", revisions)["auto"]
             auto = kept_auto
     for distance in args.distances:
         for motion in args.motions:
@@ -272,6 +300,7 @@ def main(argv: list[str] | None = None) -> None:
             loop = loop_scene(distance, motion)
             mine = [f for f in fixed if (f.distance_m, f.motion) == (distance, motion)]
             for choice in sweep_choices(loop) if not mine else []:
+                revisions[scene_key("sweep", distance, motion)] = REVISION
                 mine.append(run_fixed(distance, motion, choice))
                 p = mine[-1]
                 print(
@@ -281,6 +310,7 @@ def main(argv: list[str] | None = None) -> None:
                 )
                 fixed.append(p)
             best = max(p.goodput_bps for p in mine)
+            revisions[scene_key("auto", distance, motion)] = REVISION
             auto.append(run_auto(distance, motion, best))
             a = auto[-1]
             print(
