@@ -57,7 +57,8 @@ def test_auto_serves_the_weakest_receiver_that_reads_the_link() -> None:
     feed(mode, 12.0, {"near": 24.0, "far": 9.0})
     assert mode.choice.cells > 16
     # What the far camera's pixels allow, not the near one's.
-    assert px_at(9.0, 16, mode.choice.cells) >= 6.0
+    need = mode.config.min_px[mode.choice.profile]
+    assert px_at(9.0, 16, mode.choice.cells) >= need
     assert mode.served == "far"
     assert mode.history and mode.history[-1]["settings"] == str(mode.choice)
 
@@ -67,7 +68,8 @@ def test_a_pinned_receiver_sets_the_pace_and_a_silent_one_does_not_hold_it_down(
     mode.set_mode("auto", "near", 0.0)
     feed(mode, 12.0, {"near": 24.0, "far": 9.0})
     assert mode.served == "near"
-    assert px_at(9.0, 16, mode.choice.cells) < 6.0 <= px_at(24.0, 16, mode.choice.cells)
+    need = mode.config.min_px[mode.choice.profile]
+    assert px_at(9.0, 16, mode.choice.cells) < need <= px_at(24.0, 16, mode.choice.cells)
 
     unpinned = LinkMode()
     unpinned.set_mode("auto", None, 0.0)
