@@ -272,8 +272,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--auto-only",
         action="store_true",
-        help="run auto again against the fixed sweep the results file holds (a new controller "
-        "changes nothing the sweep measured)",
+        help="run auto again for the scenes asked for against the fixed sweep the results file "
+        "holds, keeping the other scenes' auto runs (a new controller changes nothing the sweep "
+        "measured)",
     )
     args = parser.parse_args(argv)
     results = args.out / "results" / "closed_loop.json"
@@ -290,9 +291,10 @@ def main(argv: list[str] | None = None) -> None:
         kept = json.loads(results.read_text())
         fixed, kept_auto = _points(kept)
         old = {"sweep": _section_revision(args.out / BENCHMARKS_MD.name), **kept["revisions"]}
-        revisions = per_scene(old, fixed, [] if args.auto_only else kept_auto)
-        if not args.auto_only:
-            auto = kept_auto
+        asked = {(d, m) for d in args.distances for m in args.motions}
+        # --auto-only runs the scenes asked for again and keeps the others' auto runs.
+        auto = [a for a in kept_auto if not args.auto_only or (a.distance_m, a.motion) not in asked]
+        revisions = per_scene(old, fixed, auto)
     for distance in args.distances:
         for motion in args.motions:
             if any((a.distance_m, a.motion) == (distance, motion) for a in auto):
