@@ -51,11 +51,11 @@ HOLDS = (1, 2, 3, 4)
 """Display refreshes each frame is held for: the frame rates a display offers are its own
 refresh rate divided by these."""
 NOMINAL_HZ = 60.0
-EVK4_MIN_PX = {"robust": 5.0, "fast": 6.5}
+EVK4_MIN_PX = {"robust": 5.0, "fast": 6.0}
 """Pixels per cell each profile needs on the EVK4 (the simulator's ``evk4`` preset):
-``robust`` reads nothing at 5 px per cell in ``bench.realistic`` and every frame at 5.5 in
-``bench.closed_loop``, still and hand-held; ``fast``, read from one transition, passes most
-frames from 7 px per cell still and fewer below (``bench.realistic``)."""
+``robust`` reads nothing at 5 px per cell in ``bench.realistic`` and nearly every frame at 5.5
+in ``bench.closed_loop``, still and hand-held; ``fast``, read from one transition, nearly every
+frame at 6.5 still, most at 6, none at 5.5 (``bench.closed_loop``)."""
 
 
 @dataclass(frozen=True)

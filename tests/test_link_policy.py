@@ -321,15 +321,22 @@ def test_bad_settings_are_refused() -> None:
 
 
 @pytest.mark.parametrize(
-    ("flow", "top"), [(0.1, LinkChoice("fast", 64)), (1.0, LinkChoice("robust", 80))]
+    ("px16", "flow", "top"),
+    [
+        (25.84, 0.0, LinkChoice("fast", 64)),
+        (25.84, 1.0, LinkChoice("robust", 80)),
+        (12.4, 0.0, LinkChoice("fast", 32)),
+    ],
 )
 def test_the_evk4_defaults_climb_to_the_smallest_cells_it_reads(
-    flow: float, top: LinkChoice
+    px16: float, flow: float, top: LinkChoice
 ) -> None:
-    """25.8 px per cell at N = 16 (the closed-loop benchmark's 0.6 m): ``fast`` N = 64 at 6.9 px
-    still, not N = 72 at 6.0; hand-held, ``robust`` N = 80 at 5.5 px, not N = 96 at 4.6."""
+    """The closed-loop benchmark's pixels per cell at N = 16, still (no motion reported) or
+    hand-held at 1 px/ms. At 0.6 m (25.8): ``fast``
+    N = 64 at 6.9 px still, not N = 72 at 6.0; hand-held, ``robust`` N = 80 at 5.5 px, not
+    N = 96 at 4.6. At 1.25 m (12.4) still: ``fast`` N = 32 at 6.5 px, not N = 40 at 5.0."""
     policy = LinkPolicy()
     assert policy.config.min_px == EVK4_MIN_PX
-    end, reasons, _ = run(policy, start_choice(60.0), 4.0, px_at_16=25.84, flow=flow)
+    end, reasons, _ = run(policy, start_choice(60.0), 4.0, px_at_16=px16, flow=flow)
     assert reasons and all(r.startswith("up") for r, _ in reasons)
     assert end == top
