@@ -18,12 +18,23 @@ N = 24, 32, 40, 48, 64, 72, 80 and 112 exactly, leaving 2 bytes at N = 20, 56 an
 N = 128. A packed frame thus carries its whole room, where an unpacked one carries its room
 less RaptorQ's alignment (80 of N = 32's 84 bytes). What it costs: more, smaller symbols per
 frame, each one RaptorQ decoder call.
+
+A packed stream's fountain blocks hold ``BLOCK_BYTES`` (``packed_profile``), as many source
+symbols as make the blocks of an unpacked N = 16 stream: a frame carries symbols of one block
+only, so one that starts near the end of its block's run skips the first positions of the next
+block's, and a message cut into more, smaller blocks meets more such boundaries.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+from eventocc.occ.profiles import LinkProfile
+
 SYMBOL_SIZE = 6
 """Bytes per packed symbol."""
+BLOCK_BYTES = 12 * 1024
+"""Source bytes per fountain block of a packed stream (1024 symbols of N = 16's 12 bytes)."""
 FLAG_PACKED = 0x1
 """``FrameHeader.flags`` bit: the frame carries packed symbols."""
 
@@ -32,3 +43,8 @@ def symbols_per_frame(room: int) -> int:
     """Packed symbols in a frame with ``room`` bytes between header and CRC
     (``FrameCodec.room``)."""
     return room // SYMBOL_SIZE
+
+
+def packed_profile(profile: LinkProfile) -> LinkProfile:
+    """``profile`` with the fountain blocks of packed streams (``BLOCK_BYTES``)."""
+    return replace(profile, block_symbols=BLOCK_BYTES // SYMBOL_SIZE)

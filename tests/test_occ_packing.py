@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from eventocc.occ.frame_codec import FrameCodec
-from eventocc.occ.packing import SYMBOL_SIZE
+from eventocc.occ.packing import BLOCK_BYTES, SYMBOL_SIZE
 from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import StreamDecoder, StreamEncoder
 
@@ -129,3 +129,19 @@ def test_paper_cannot_be_packed() -> None:
         StreamEncoder(MESSAGE, profile="paper", cells=16, packed=True)
     with pytest.raises(ValueError, match="symbol_start"):
         StreamEncoder(MESSAGE, cells=16, packed=True, symbol_start=-1)
+
+
+def test_packed_blocks_hold_as_many_bytes_as_an_unpacked_n16_streams() -> None:
+    """Blocks of BLOCK_BYTES (12 kB): a 7 kB message is one block, a 13 kB one two, and the
+    two-block message decodes from packed frames."""
+    assert 1024 * FrameCodec(get_profile("robust"), 16).symbol_size == BLOCK_BYTES
+    codec = FrameCodec(get_profile("robust"), 64)
+    for size, blocks in ((7000, {0}), (13000, {0, 1})):
+        message = bytes(np.random.default_rng(size).integers(0, 256, size, dtype=np.uint8))
+        enc = StreamEncoder(message, name="m.bin", cells=64, packed=True)
+        frames = data_frames(enc, enc.cycle)
+        seen = {codec.decode(bits)[0].block for bits in frames}
+        assert seen == blocks
+        dec = StreamDecoder(cells=64)
+        got = next(r for bits in frames if (r := dec.push(bits)))
+        assert got[0].data == message and got[0].verified
