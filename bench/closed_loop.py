@@ -138,7 +138,13 @@ def _k(bps: float) -> str:
     return f"{bps / 1e3:.1f}"
 
 
+def _scene_order(point: FixedPoint | AutoRun) -> tuple[float, int]:
+    return point.distance_m, MOTIONS.index(point.motion)
+
+
 def report(fixed: list[FixedPoint], auto: list[AutoRun], revisions: dict[str, str]) -> str:
+    """The section's text, scenes by distance and then motion whatever order they ran in."""
+    fixed, auto = sorted(fixed, key=_scene_order), sorted(auto, key=_scene_order)
     lines = [
         "The paper's camera (1280x720, `evk4` sensor and lens, 250 lux) watching a 60 Hz "
         "screen on which the transmitter page fits the marker to 0.36 m, whatever its N; "
