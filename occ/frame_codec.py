@@ -1,5 +1,9 @@
-"""One framed (robust/fast) data frame: header + fountain symbol + CRC, Reed-Solomon coded,
+"""One framed (robust/fast) data frame: header + fountain symbol(s) + CRC, Reed-Solomon coded,
 interleaved and whitened onto the N x N payload cells, and back.
+
+The CRC follows the whole room the codewords leave after the header (``FrameCodec.room``):
+an unpacked frame's symbol, RaptorQ-aligned, leaves a few zero bytes before it; a packed
+frame's symbols fill it (``eventocc.occ.packing``).
 
 The frame's ``N * N // 8`` whole bytes are split into ``ceil(bytes / 255)`` equal RS codewords
 (the few bytes and cells left over carry only the whitening). Each codeword spends
@@ -32,6 +36,7 @@ from eventocc.occ.framing import (
     unseal,
     whitening_mask,
 )
+from eventocc.occ.packing import FLAG_PACKED
 from eventocc.occ.profiles import LinkProfile
 
 OVERHEAD = FrameHeader.SIZE + FrameHeader.CRC_SIZE
@@ -52,12 +57,16 @@ class FrameCodec:
                 f"a {cells}x{cells} payload is too small for the {profile.name} profile's "
                 f"header and parity; use more cells"
             )
+        self.room = capacity
+        """Bytes between header and CRC: a packed frame's symbols fill them
+        (``eventocc.occ.packing``), an unpacked frame's one symbol and zero padding."""
         self.symbol_size = symbol_size_for(capacity)
+        """An unpacked frame's fountain symbol: the room as RaptorQ aligns it."""
         self.rs = ReedSolomon(n, n - nsym)
         self.mask = whitening_mask(cells)
         self.coded_bytes = self.codewords * n
         self.frame_bytes = frame_bytes
-        sealed = OVERHEAD + self.symbol_size
+        sealed = OVERHEAD + self.room
         self._crc = slice(sealed - FrameHeader.CRC_SIZE, sealed)
         self.corrected: np.ndarray | None = None
         """(cells, cells) bool: the cells whose bits the last ``decode`` corrected; None if
@@ -72,10 +81,12 @@ class FrameCodec:
         return mask
 
     def encode(self, header: FrameHeader, symbol: bytes) -> np.ndarray:
-        """(cells, cells) uint8 bits of one data frame."""
-        if len(symbol) != self.symbol_size:
-            raise ValueError(f"symbol must be {self.symbol_size} bytes, got {len(symbol)}")
-        sealed = seal(header, symbol)
+        """(cells, cells) uint8 bits of one data frame: ``symbol_size`` bytes of one symbol, or,
+        with ``FLAG_PACKED`` in the header, ``room`` bytes of packed symbols."""
+        size = self.room if header.flags & FLAG_PACKED else self.symbol_size
+        if len(symbol) != size:
+            raise ValueError(f"symbol must be {size} bytes, got {len(symbol)}")
+        sealed = seal(header, symbol.ljust(self.room, b"\0"))
         size = self.codewords * self.rs.k
         mask = self._keyed(sealed[self._crc])
         data = np.frombuffer(sealed.ljust(size, b"\0"), dtype=np.uint8) ^ mask[:size]
@@ -107,11 +118,11 @@ class FrameCodec:
         data = codewords[:, : self.rs.k].reshape(-1)
         data = data ^ self._keyed(data[self._crc].tobytes())[: data.size]
         try:
-            frame = unseal(data[: self._crc.stop].tobytes())
+            header, body = unseal(data[: self._crc.stop].tobytes())
         except FramingError:
             return None
         self.corrected = self._corrected_cells(received, interleave(codewords))
-        return frame
+        return header, body if header.flags & FLAG_PACKED else body[: self.symbol_size]
 
     def _corrected_cells(self, received: np.ndarray, corrected: np.ndarray) -> np.ndarray:
         """(cells, cells) bool: the cells of the coded bytes whose bit the code changed (the

@@ -12,7 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-HEADER_VERSION = 1
+HEADER_VERSION = 2
+"""2: the CRC follows the frame's whole room (``FrameCodec.room``) and packed symbols are of
+``eventocc.occ.packing.SYMBOL_SIZE`` bytes; a version-1 frame does not decode."""
 
 
 class FramingError(ValueError):
@@ -70,12 +72,13 @@ def keyed_whitening(key: bytes, nbytes: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FrameHeader:
-    """The header of a framed (robust/fast) data frame, followed by one fountain symbol and a
-    CRC-16/CCITT of header and symbol.
+    """The header of a framed (robust/fast) data frame, followed by its fountain symbol (or,
+    with ``FLAG_PACKED``, symbols: ``eventocc.occ.packing``) and a CRC-16/CCITT of header and
+    symbols.
 
     Layout (big-endian): ``version u4 | flags u4 | stream_id u16 | block u24 | block_symbols u16
     | esi u16``, 10 bytes. ``block_symbols`` is the source-symbol count of this fountain block;
-    ``esi`` the RaptorQ encoding symbol id within it.
+    ``esi`` the RaptorQ encoding symbol id within it (packed: the first symbol's).
     """
 
     stream_id: int

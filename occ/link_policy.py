@@ -12,18 +12,16 @@ How it chooses, and why:
   side in cells (the page fits the marker to the screen whatever N is), so the receiver's
   pixels per cell at the present N predict them at any other; the target is the setting that
   carries most among those whose predicted pixels per cell keep ``up_margin`` above what its
-  profile needs (``min_px``; the defaults are the EVK4's in ``bench.realistic``: ``robust``
-  still passes every frame at 6 px per cell, ``fast`` from 7), at most three times the cells
-  per step (``fast`` only while the marker moves less than ``fast_max_shift`` of a cell in
-  one frame), predicted from the fewest pixels per cell the window saw. It moves only on a
-  clean window: nearly every frame passing (most of them while the cells are far above what
-  their profile needs: frames lost there are not lost to the cells' size, and a denser
-  marker loses about as many), the sensor's readout and the receiver's real-time margin not
-  near their limits, the camera not swinging, and no BER before FEC that looks like the
+  profile needs (``min_px``; the defaults, ``EVK4_MIN_PX``, are the EVK4's), at most three
+  times the cells per step (``fast`` only while the marker moves less than ``fast_max_shift``
+  of a cell in one frame), predicted from the fewest pixels per cell the window saw. It moves
+  only on a clean window: nearly every frame passing (most of them while the cells are far
+  above what their profile needs: frames lost there are not lost to the cells' size, and a
+  denser marker loses about as many), the sensor's readout and the receiver's real-time margin
+  not near their limits, the camera not swinging, and no BER before FEC that looks like the
   cells' own: above ``ber_up`` while the cells are less than ``far_margin`` above what their
   profile needs, where errors grow as cells shrink. (Errors at cells far above it come from
-  motion or a full readout, which a denser marker does not worsen much: they do not stop
-  it.)
+  motion or a full readout, which a denser marker does not worsen much: they do not stop it.)
 - Downward it moves at once: frames lost, frames failing with BER near what the code
   corrects (while every frame passes, such a BER only holds it), the lock gone, the cells
   too small for the profile or the receiver falling behind. It steps one notch: to the
@@ -53,6 +51,11 @@ HOLDS = (1, 2, 3, 4)
 """Display refreshes each frame is held for: the frame rates a display offers are its own
 refresh rate divided by these."""
 NOMINAL_HZ = 60.0
+EVK4_MIN_PX = {"robust": 5.0, "fast": 6.0}
+"""Pixels per cell each profile needs on the EVK4 (the simulator's ``evk4`` preset):
+``robust`` reads nothing at 5 px per cell in ``bench.realistic`` and nearly every frame at 5.5
+in ``bench.closed_loop``, still and hand-held; ``fast``, read from one transition, nearly every
+frame at 6.5 still, most at 6, none at 5.5 (``bench.closed_loop``)."""
 
 
 @dataclass(frozen=True)
@@ -89,7 +92,7 @@ class LinkChoice:
 
 @cache
 def _packed_bytes(profile: str, cells: int) -> int:
-    return SYMBOL_SIZE * symbols_per_frame(FrameCodec(get_profile(profile), cells).symbol_size)
+    return SYMBOL_SIZE * symbols_per_frame(FrameCodec(get_profile(profile), cells).room)
 
 
 def start_choice(display_hz: float) -> LinkChoice:
@@ -207,8 +210,8 @@ def _peak(samples: list[FrameSample], name: str) -> float | None:
 
 @dataclass(frozen=True)
 class PolicyConfig:
-    min_px: dict[str, float] = field(default_factory=lambda: {"robust": 6.0, "fast": 7.0})
-    """Pixels per cell each profile needs (the EVK4's, ``bench.realistic``)."""
+    min_px: dict[str, float] = field(default_factory=lambda: dict(EVK4_MIN_PX))
+    """Pixels per cell each profile needs."""
     up_margin: float = 1.03
     """Predicted pixels per cell kept this far above ``min_px`` when stepping up (little:
     a step that fails costs one notch back and a hold-off, a margin held for ever costs

@@ -39,7 +39,7 @@ from eventocc.occ.fountain import FountainDecoder, FountainEncoder, stream_id_of
 from eventocc.occ.frame_codec import FrameCodec
 from eventocc.occ.framing import FrameHeader
 from eventocc.occ.marker import MarkerGeometry
-from eventocc.occ.packing import FLAG_PACKED, SYMBOL_SIZE, symbols_per_frame
+from eventocc.occ.packing import FLAG_PACKED, SYMBOL_SIZE, packed_profile, symbols_per_frame
 from eventocc.occ.paper_codec import PaperDecoder, PaperEncoder
 from eventocc.occ.profiles import DEFAULT_PROFILE, LinkProfile, get_profile
 
@@ -122,10 +122,12 @@ class StreamEncoder:
         """Fountain symbols per data frame (more than one only when ``packed``)."""
         if self.profile.framed:
             self._codec = FrameCodec(self.profile, cells)
-            size = SYMBOL_SIZE if packed else self._codec.symbol_size
-            self._fountain = FountainEncoder(message, digest, name, size, self.profile)
+            size, fountain_profile = self._codec.symbol_size, self.profile
             if packed:
-                self.symbols_per_frame = symbols_per_frame(self._codec.symbol_size)
+                size, fountain_profile = SYMBOL_SIZE, packed_profile(self.profile)
+            self._fountain = FountainEncoder(message, digest, name, size, fountain_profile)
+            if packed:
+                self.symbols_per_frame = symbols_per_frame(self._codec.room)
             self.symbols = math.ceil(self._fountain.layout.cycle / self.symbols_per_frame)
         else:
             self._paper = PaperEncoder(message, cells)
@@ -174,7 +176,7 @@ class StreamEncoder:
                 m = self.symbols_per_frame
                 block, k, esi, run = self._fountain.run(self.symbol_start + j * m, m)
                 header = FrameHeader(self.stream_id, block, k, esi, FLAG_PACKED)
-                bits = self._codec.encode(header, run.ljust(self._codec.symbol_size, b"\0"))
+                bits = self._codec.encode(header, run.ljust(self._codec.room, b"\0"))
             elif self.profile.framed:
                 block, k, esi, symbol = self._fountain.symbol(j)
                 header = FrameHeader(self.stream_id, block, k, esi)
@@ -310,9 +312,9 @@ class StreamDecoder:
         if frame is None:
             return []
         header, symbol = frame
-        size = self._codec.symbol_size
+        size, profile = self._codec.symbol_size, self.profile
         if header.flags & FLAG_PACKED:
-            size = SYMBOL_SIZE
+            size, profile = SYMBOL_SIZE, packed_profile(self.profile)
             symbol = symbol[: symbols_per_frame(len(symbol)) * SYMBOL_SIZE]
         self.verified_bits += 8 * len(symbol)
         if header.stream_id in self._delivered:
@@ -321,7 +323,7 @@ class StreamDecoder:
         if stream is None or stream.symbol_size != size:
             # A stream sent at another density unpacked, or packed after unpacked frames: the
             # symbols differ in size, so the frames now on screen start over.
-            stream = self._streams[header.stream_id] = FountainDecoder(size, self.profile)
+            stream = self._streams[header.stream_id] = FountainDecoder(size, profile)
         done = None
         for r in range(len(symbol) // size):
             piece = symbol[r * size : (r + 1) * size]

@@ -8,6 +8,7 @@ from typing import Self
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from eventocc.occ.link_policy import EVK4_MIN_PX
 from eventocc.occ.marker import MAX_CELLS, MIN_CELLS
 from eventocc.occ.profiles import DEFAULT_PROFILE, PROFILE_NAMES
 
@@ -35,10 +36,10 @@ class Settings(BaseSettings):
     default_cells: int = Field(16, ge=MIN_CELLS, le=MAX_CELLS)
     encoder_cache_size: int = Field(8, ge=1)
     """Frame encoders kept warm, one per (message, profile, cells) being played."""
-    auto_min_px_robust: float = Field(6.0, gt=0)
-    auto_min_px_fast: float = Field(7.0, gt=0)
+    auto_min_px_robust: float = Field(EVK4_MIN_PX["robust"], gt=0)
+    auto_min_px_fast: float = Field(EVK4_MIN_PX["fast"], gt=0)
     """Pixels per cell auto mode gives each profile before stepping up to it: the EVK4's
-    (``bench.realistic``); a camera that reads smaller cells can be given less."""
+    (``occ.link_policy.EVK4_MIN_PX``); a camera that reads smaller cells can be given less."""
 
     @field_validator("default_profile")
     @classmethod

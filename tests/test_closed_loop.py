@@ -5,9 +5,11 @@ change, controller fed by the receiver's frame reports)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+from bench.closed_loop import FixedPoint, per_scene, runs_at, scene_key
 from bench.loop_sim import LoopScene, random_message, run_link
-from eventocc.occ.link_policy import LinkPolicy, PolicyConfig, px_at
-from eventocc.occ.packing import SYMBOL_SIZE
+from eventocc.occ.link_policy import LinkChoice, LinkPolicy, PolicyConfig, px_at
 from eventocc.receiver.camera import CameraModel
 
 MOVE_S = 0.8
@@ -39,7 +41,17 @@ def test_a_camera_carried_away_mid_message_steps_down_and_the_message_completes(
 
     assert run.message_ok, "the message must come out once, byte-exact and verified"
     assert run.message_done_s is not None and run.message_done_s > after[0].t_s
-    # The symbols collected near count: far away alone, N = 16 robust (one symbol in each of
-    # 30 data frames a second) would need over twice as long as it took.
-    far_alone_s = len(message) / (SYMBOL_SIZE * 30)
+    # The symbols collected near count: far away alone, N = 16 robust (its 30 data frames a
+    # second) would need over twice as long as it took.
+    far_alone_s = 8 * len(message) / LinkChoice("robust", 16).payload_bps(loop.display_hz)
     assert run.message_done_s - after[0].t_s < 0.5 * far_alone_s
+
+
+def test_the_report_names_the_commit_each_scene_ran_at() -> None:
+    point = FixedPoint(0.6, "still", "robust", 16, 25.8, 3000.0, 1.0)
+    far = replace(point, distance_m=2.5)
+    # An older results file names one commit for the whole sweep and one for the auto runs.
+    revisions = per_scene({"sweep": ", commit aaa", "auto": ", commit bbb"}, [point, far], [])
+    assert revisions == {"sweep 0.6 m still": ", commit aaa", "sweep 2.5 m still": ", commit aaa"}
+    revisions[scene_key("sweep", 2.5, "still")] = ", commit ccc"
+    assert runs_at(revisions, "sweep") == "commit aaa (0.6 m still); commit ccc (2.5 m still)"

@@ -9,15 +9,24 @@ import pytest
 
 from eventocc.occ.link_policy import (
     CELLS_LADDER,
+    EVK4_MIN_PX,
     FrameSample,
     LinkChoice,
     LinkMeter,
     LinkPolicy,
     LinkWindow,
+    PolicyConfig,
     px_at,
     start_choice,
 )
 from eventocc.occ.profiles import get_profile
+
+CAMERA_PX = {"robust": 6.0, "fast": 7.0}
+"""What the made-up camera's cells need: the tests' figures are worked out for these."""
+
+
+def camera_policy(display_hz: float = 60.0) -> LinkPolicy:
+    return LinkPolicy(display_hz, PolicyConfig(min_px=CAMERA_PX))
 
 
 def run(
@@ -70,7 +79,7 @@ def test_it_starts_where_any_camera_reads() -> None:
 
 
 def test_a_near_camera_climbs_to_what_its_pixels_allow_and_stays() -> None:
-    policy = LinkPolicy()
+    policy = camera_policy()
     end, reasons, _ = run(policy, start_choice(60.0), 6.0, px_at_16=20.0)
     assert reasons and all(r.startswith("up") for r, _ in reasons)
     # fast needs 7 px and the margin: the largest N whose pixels per cell still allow it.
@@ -83,9 +92,9 @@ def test_a_near_camera_climbs_to_what_its_pixels_allow_and_stays() -> None:
 
 def test_a_moving_camera_climbs_in_robust_only_and_a_swinging_one_not_at_all() -> None:
     for flow in (0.5, 1.8):  # a slow hand moves a 60 Hz frame of 8 px cells by a cell
-        end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 6.0, px_at_16=20.0, flow=flow)
+        end, reasons, _ = run(camera_policy(), start_choice(60.0), 6.0, px_at_16=20.0, flow=flow)
         assert reasons and all(c.profile == "robust" for _, c in reasons) and end.cells > 16
-    end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 3.0, px_at_16=20.0, flow=3.5)
+    end, reasons, _ = run(camera_policy(), start_choice(60.0), 3.0, px_at_16=20.0, flow=3.5)
     assert end == start_choice(60.0) and not reasons
 
 
@@ -95,32 +104,32 @@ def test_it_never_climbs_on_a_dirty_window() -> None:
         {"margin": 1.1},
         {"px_at_16": None},
     ):
-        end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 3.0, **kwargs)
+        end, reasons, _ = run(camera_policy(), start_choice(60.0), 3.0, **kwargs)
         assert end == start_choice(60.0) and not reasons, kwargs
     # Cells near what they need (7.4 px at robust N = 56, N = 64 would fit): nearly every
     # frame must pass.
     robust56 = LinkChoice("robust", 56)
-    end, reasons, _ = run(LinkPolicy(), robust56, 3.0, px_at_16=25.3, flow=1.0, passed=0.8)
+    end, reasons, _ = run(camera_policy(), robust56, 3.0, px_at_16=25.3, flow=1.0, passed=0.8)
     assert end == robust56 and not reasons
 
 
 def test_errors_near_the_limit_stop_the_climb_and_errors_far_from_it_do_not() -> None:
-    c = LinkPolicy().config
+    c = camera_policy().config
     # A hand-held camera (robust only) with 25.3 px per cell at N = 16: 7.4 at N = 56, near
     # the 6 robust needs; robust N = 64 would still fit.
     px16, robust56 = 25.3, LinkChoice("robust", 56)
     assert px_at(px16, 16, 56) < c.min_px["robust"] * c.far_margin
     assert px_at(px16, 16, 64) >= c.min_px["robust"] * c.up_margin
-    clean, _, _ = run(LinkPolicy(), robust56, 3.0, px_at_16=px16, flow=1.0)
+    clean, _, _ = run(camera_policy(), robust56, 3.0, px_at_16=px16, flow=1.0)
     assert clean == LinkChoice("robust", 64)
-    policy = LinkPolicy()
+    policy = camera_policy()
     held, reasons, _ = run(policy, robust56, 3.0, px_at_16=px16, flow=1.0, ber=0.006)
     assert held == robust56 and not reasons
     # The same errors at cells far above what they need come from elsewhere: they do not
     # pin N, and it ends where a clean link ends.
-    end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 4.0, px_at_16=px16, flow=1.0)
+    end, reasons, _ = run(camera_policy(), start_choice(60.0), 4.0, px_at_16=px16, flow=1.0)
     noisy, noisy_reasons, _ = run(
-        LinkPolicy(), start_choice(60.0), 4.0, px_at_16=px16, flow=1.0, ber=0.006
+        camera_policy(), start_choice(60.0), 4.0, px_at_16=px16, flow=1.0, ber=0.006
     )
     assert noisy == end == LinkChoice("robust", 64)
     assert [c for _, c in noisy_reasons] == [c for _, c in reasons]
@@ -129,13 +138,13 @@ def test_errors_near_the_limit_stop_the_climb_and_errors_far_from_it_do_not() ->
 def test_frames_lost_at_cells_far_above_what_they_need_do_not_stop_the_climb() -> None:
     """A full readout or a moving camera fails some frames whatever the cells: at 20 px per
     cell, 70% passing is no reason to stay at N = 16."""
-    end, reasons, _ = run(LinkPolicy(), start_choice(60.0), 3.0, px_at_16=20.0, passed=0.7)
+    end, reasons, _ = run(camera_policy(), start_choice(60.0), 3.0, px_at_16=20.0, passed=0.7)
     assert reasons and end.cells > 16
 
 
 def test_a_swinging_camera_is_judged_by_its_fewest_pixels_per_cell() -> None:
     """Reports at 20 and 17 px per cell at N = 16 by turns: the step up must fit 17."""
-    policy, meter = LinkPolicy(), LinkMeter(start_choice(60.0), 60.0, 0.0)
+    policy, meter = camera_policy(), LinkMeter(start_choice(60.0), 60.0, 0.0)
     for i in range(30):
         meter.add(FrameSample(i / 30, True, 0.0, 20.0 if i % 2 else 17.0, 0.3, 1.0, 2.0))
     window = meter.window(1.0)
@@ -161,7 +170,7 @@ def test_the_frames_before_a_new_lock_are_not_losses() -> None:
     recent = meter.window(0.35, 0.3)
     assert recent.pass_share == pytest.approx(1.0, abs=0.3)
     # The first frames of a new lock failing do not decide alone: losses need min_frames.
-    policy, meter = LinkPolicy(), LinkMeter(LinkChoice("robust", 48), 60.0, 0.0)
+    policy, meter = camera_policy(), LinkMeter(LinkChoice("robust", 48), 60.0, 0.0)
     for i in range(4):
         meter.add(FrameSample(0.2 + i / 30, False, px_per_cell=8.0))
     decision = policy.decide(meter.choice, meter.window(0.35), meter.window(0.35, 0.3), 0.35)
@@ -173,7 +182,7 @@ def test_the_frames_before_a_new_lock_are_not_losses() -> None:
 
 
 def test_losses_step_down_one_notch_at_once_and_the_failed_setting_is_held_off() -> None:
-    policy = LinkPolicy()
+    policy = camera_policy()
     bad = LinkChoice("fast", 48)
     _, reasons, t = run(policy, bad, 1.0, passed=0.3, px_at_16=20.0)
     reason, choice = reasons[0]
@@ -193,21 +202,21 @@ def test_losses_step_down_one_notch_at_once_and_the_failed_setting_is_held_off()
     ],
 )
 def test_each_limit_steps_down_one_notch(kwargs: dict, why: str) -> None:
-    policy = LinkPolicy()
+    policy = camera_policy()
     _, reasons, _ = run(policy, LinkChoice("robust", 48), 0.4, px_at_16=20.0, **kwargs)
     assert why in reasons[0][0]
     assert reasons[0][1] == LinkChoice("robust", 40)
 
 
 def test_a_failure_that_persists_walks_down_to_the_start_and_no_further() -> None:
-    policy = LinkPolicy()
+    policy = camera_policy()
     end, reasons, _ = run(policy, LinkChoice("robust", 32), 3.0, px_at_16=20.0, passed=0.2)
     assert end == start_choice(60.0)
     assert [c.cells for _, c in reasons] == [24, 20, 16]
 
 
 def test_high_ber_while_every_frame_passes_holds_and_does_not_step_down() -> None:
-    policy = LinkPolicy()
+    policy = camera_policy()
     end, reasons, _ = run(policy, LinkChoice("robust", 32), 2.0, px_at_16=20.0, ber=0.02)
     assert end == LinkChoice("robust", 32) and not reasons
     window = LinkMeter(end, 60.0, 0.0)
@@ -220,7 +229,7 @@ def test_high_ber_while_every_frame_passes_holds_and_does_not_step_down() -> Non
 def test_a_burst_costs_one_notch_and_the_setting_comes_back_after_its_hold_off() -> None:
     """A setting that works but meets a burst of errors that fail frames: one notch down,
     held off, then back."""
-    policy = LinkPolicy()
+    policy = camera_policy()
     c = policy.config
     good = LinkChoice("robust", 48)
 
@@ -241,7 +250,7 @@ def test_a_burst_costs_one_notch_and_the_setting_comes_back_after_its_hold_off()
 
 
 def test_held_off_settings_wait_and_repeated_quick_failures_wait_longer() -> None:
-    policy = LinkPolicy()
+    policy = camera_policy()
     c = policy.config
     s = LinkChoice("robust", 32)
     down = policy._step_down(s, window(0.1), 10.0, "losses")
@@ -282,18 +291,16 @@ def window(span_s: float, px_at_24: float = 8.5) -> LinkWindow:
 def test_a_camera_moving_away_is_followed_down_by_its_pixels() -> None:
     """At N = 64 a camera that drops to 8 px per cell at N = 16 (it moved away) goes down
     to an N its pixels fit, not just one notch."""
-    end, reasons, _ = run(LinkPolicy(), LinkChoice("fast", 64), 0.5, px_at_16=8.0, passed=0.0)
+    end, reasons, _ = run(camera_policy(), LinkChoice("fast", 64), 0.5, px_at_16=8.0, passed=0.0)
     assert reasons[0][0].startswith("down from fast N = 64")
     assert px_at(8.0, 16, end.cells) >= 6.0
     assert end.cells < 48
 
 
 def test_a_faster_display_offers_its_rate_unless_the_readout_is_full() -> None:
-    end, _, _ = run(LinkPolicy(display_hz=120.0), start_choice(120.0), 3.0, px_at_16=30.0)
+    end, _, _ = run(camera_policy(120.0), start_choice(120.0), 3.0, px_at_16=30.0)
     assert end.hold == 1
-    end, _, _ = run(
-        LinkPolicy(display_hz=120.0), start_choice(120.0), 3.0, px_at_16=30.0, readout=0.95
-    )
+    end, _, _ = run(camera_policy(120.0), start_choice(120.0), 3.0, px_at_16=30.0, readout=0.95)
     assert end.hold == 2 and end.cells > 16
 
 
@@ -311,3 +318,25 @@ def test_bad_settings_are_refused() -> None:
         LinkChoice("robust", 17)
     with pytest.raises(ValueError, match="hold"):
         LinkChoice("robust", 16, 0)
+
+
+@pytest.mark.parametrize(
+    ("px16", "flow", "top"),
+    [
+        (25.84, 0.0, LinkChoice("fast", 64)),
+        (25.84, 1.0, LinkChoice("robust", 80)),
+        (12.4, 0.0, LinkChoice("fast", 32)),
+    ],
+)
+def test_the_evk4_defaults_climb_to_the_smallest_cells_it_reads(
+    px16: float, flow: float, top: LinkChoice
+) -> None:
+    """The closed-loop benchmark's pixels per cell at N = 16, still (no motion reported) or
+    hand-held at 1 px/ms. At 0.6 m (25.8): ``fast``
+    N = 64 at 6.9 px still, not N = 72 at 6.0; hand-held, ``robust`` N = 80 at 5.5 px, not
+    N = 96 at 4.6. At 1.25 m (12.4) still: ``fast`` N = 32 at 6.5 px, not N = 40 at 5.0."""
+    policy = LinkPolicy()
+    assert policy.config.min_px == EVK4_MIN_PX
+    end, reasons, _ = run(policy, start_choice(60.0), 4.0, px_at_16=px16, flow=flow)
+    assert reasons and all(r.startswith("up") for r, _ in reasons)
+    assert end == top

@@ -30,14 +30,15 @@ def test_too_many_bytes_for_a_frame() -> None:
 
 def test_header_bytes_both_ways() -> None:
     header = FrameHeader(stream_id=0x1234, block=0x010203, block_symbols=700, esi=0x0506)
-    packed = bytes.fromhex("10 1234 010203 02bc 0506")
+    packed = bytes.fromhex("20 1234 010203 02bc 0506")
     assert header.pack() == packed
     assert FrameHeader.unpack(packed) == header
 
 
 def test_header_of_another_version_is_refused() -> None:
-    with pytest.raises(FramingError, match="version 2"):
-        FrameHeader.unpack(bytes.fromhex("20 1234 010203 02bc 0506"))
+    # Version 1 put the CRC right after an unpacked frame's aligned symbol.
+    with pytest.raises(FramingError, match="version 1"):
+        FrameHeader.unpack(bytes.fromhex("10 1234 010203 02bc 0506"))
 
 
 def test_seal_detects_any_single_bit_flip() -> None:

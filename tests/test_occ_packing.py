@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eventocc.occ.packing import SYMBOL_SIZE
+from eventocc.occ.frame_codec import FrameCodec
+from eventocc.occ.packing import BLOCK_BYTES, SYMBOL_SIZE
+from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import StreamDecoder, StreamEncoder
 
 MESSAGE = bytes(np.random.default_rng(7).integers(0, 256, 3000, dtype=np.uint8))
@@ -31,12 +33,27 @@ def test_a_packed_stream_alone_decodes(profile: str, cells: int) -> None:
 
 
 def test_packed_frames_carry_whole_symbols_of_one_size() -> None:
-    for cells, per_frame in ((16, 1), (32, 6), (64, 30), (128, 126)):
+    for cells, per_frame in ((16, 2), (32, 14), (64, 62), (128, 254)):
         enc = StreamEncoder(MESSAGE, cells=cells, packed=True)
         assert enc.symbols_per_frame == per_frame
     dec = StreamDecoder(cells=64)
     dec.push(StreamEncoder(MESSAGE, cells=64, packed=True).payload_bits(0))
-    assert dec.verified_bits == 8 * 30 * SYMBOL_SIZE
+    assert dec.verified_bits == 8 * 62 * SYMBOL_SIZE
+
+
+@pytest.mark.parametrize("cells", [16, 24, 32, 48, 64, 72, 80])
+def test_a_packed_frame_fills_the_room_an_unpacked_one_leaves(cells: int) -> None:
+    """The symbol size divides these densities' rooms: a packed frame carries all of it, an
+    unpacked one its RaptorQ-aligned symbol (80 of N = 32's 84 bytes)."""
+    room = FrameCodec(get_profile("robust"), cells).room
+    carried = {}
+    for packed in (False, True):
+        dec = StreamDecoder(cells=cells)
+        dec.push(StreamEncoder(MESSAGE, cells=cells, packed=packed).payload_bits(0))
+        carried[packed] = dec.verified_bits // 8
+    assert carried[True] == room >= carried[False]
+    if cells == 32:
+        assert carried == {False: 80, True: 84}
 
 
 def test_progress_survives_density_and_profile_changes() -> None:
@@ -112,3 +129,19 @@ def test_paper_cannot_be_packed() -> None:
         StreamEncoder(MESSAGE, profile="paper", cells=16, packed=True)
     with pytest.raises(ValueError, match="symbol_start"):
         StreamEncoder(MESSAGE, cells=16, packed=True, symbol_start=-1)
+
+
+def test_packed_blocks_hold_as_many_bytes_as_an_unpacked_n16_streams() -> None:
+    """Blocks of BLOCK_BYTES (12 kB): a 7 kB message is one block, a 13 kB one two, and the
+    two-block message decodes from packed frames."""
+    assert 1024 * FrameCodec(get_profile("robust"), 16).symbol_size == BLOCK_BYTES
+    codec = FrameCodec(get_profile("robust"), 64)
+    for size, blocks in ((7000, {0}), (13000, {0, 1})):
+        message = bytes(np.random.default_rng(size).integers(0, 256, size, dtype=np.uint8))
+        enc = StreamEncoder(message, name="m.bin", cells=64, packed=True)
+        frames = data_frames(enc, enc.cycle)
+        seen = {codec.decode(bits)[0].block for bits in frames}
+        assert seen == blocks
+        dec = StreamDecoder(cells=64)
+        got = next(r for bits in frames if (r := dec.push(bits)))
+        assert got[0].data == message and got[0].verified
