@@ -529,8 +529,6 @@ class EdgeTracker:
         """The latest ``fit_judgements`` fit ratios, oldest first."""
         self.silent_history: deque[int] = deque(maxlen=config.tracker.silent_updates)
         """``silent_edges`` at the latest pose updates, oldest first."""
-        self._expected = np.zeros(8, np.int64)
-        """Per edge, the polarity its events have while the image sweeps it (``_swept``)."""
         self._tally = np.zeros((8, 2), np.int64)
         """Per edge, its events of the expected polarity and of the other, since
         ``_tally_since_us`` (``reversed_edges``)."""
@@ -544,6 +542,7 @@ class EdgeTracker:
         """Per edge, the best of its ``agreement`` since the tracker began."""
         self._rebin(T_cam_world, now_us)
         self._expected = self._swept()
+        """Per edge, the polarity its events have while the image sweeps it (``_swept``)."""
 
     @property
     def edges_px(self) -> tuple[np.ndarray, np.ndarray]:
