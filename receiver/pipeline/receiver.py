@@ -57,12 +57,7 @@ from eventocc.receiver.pipeline.decoder import (
     on_events_per_pixel,
     read_stride,
 )
-from eventocc.receiver.pipeline.detector import (
-    Detection,
-    MarkerNotFound,
-    detect,
-    nearest_turn,
-)
+from eventocc.receiver.pipeline.detector import Detection, MarkerNotFound, detect, nearest_turn
 from eventocc.receiver.pipeline.filters import EventFilter
 from eventocc.receiver.pipeline.pose import PoseHistory, pnp, project_ideal
 from eventocc.receiver.pipeline.smoothing import PoseSmoother
