@@ -416,7 +416,7 @@ def test_detection_retries_each_finer_binning_after_the_coarsest(monkeypatch):
     def miss(*_):
         raise MarkerNotFound("spatial: the blinking region is not square")
 
-    for path in ("_detect_moving", "detect_still", "_detect_slow"):
+    for path in ("_detect_moving", "_detect_still", "_detect_slow"):
         monkeypatch.setattr(detector, path, miss)
     tried = []
     found = detector.Detection(np.zeros((4, 2)), np.eye(4), 0, 0.0, 30.0, 1.0, 1.0, np.zeros(2))
@@ -525,8 +525,8 @@ def test_detection_prefers_a_path_that_reads_the_l(monkeypatch):
     monkeypatch.setattr(detector, "_detect_moving", lambda *args: unoriented)
     monkeypatch.setattr(detector, "_detect_densest", miss)
     monkeypatch.setattr(detector, "_detect_slow", miss)
-    monkeypatch.setattr(detector, "detect_still", lambda *args: still)
+    monkeypatch.setattr(detector, "_detect_still", lambda *args: still)
     events = make_events(np.arange(200) * 500, np.arange(200) % 64, np.arange(200) % 48, 1)
     assert detector.detect(events, config) is still
-    monkeypatch.setattr(detector, "detect_still", miss)
+    monkeypatch.setattr(detector, "_detect_still", miss)
     assert detector.detect(events, config) is unoriented

@@ -446,7 +446,7 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
     try:
         region = blinking_region(parts, config)
     except MarkerNotFound:  # the still path says why in its own, finer terms
-        return detect_still(parts, config)
+        return _detect_still(parts, config)
     tb = latest_burst_us(parts, region.burst_us, period)
     flow = burst_flow(parts, tb, period, region.box)
     if np.any(flow) and not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
@@ -459,7 +459,7 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
         paths.append(lambda: _detect_densest(parts, tb, region, config))
     # A small marker's few OFF events can fake a flow: the still path gets its chance too.
     paths += [
-        lambda: detect_still(parts, config),
+        lambda: _detect_still(parts, config),
         lambda: _detect_slow(parts, tb, region, config),
     ]
     # Under motion the latest burst is often unreadable while the one before reads clearly.
@@ -513,7 +513,7 @@ def _detect_binned(parts: list[np.ndarray], config: ReceiverConfig, b: int) -> D
     and phase, while a binned pixel collects a cell's worth."""
     cam = config.camera
     coarse = replace(config, camera=cam.binned(cam.width // b, cam.height // b))
-    found = detect_still(_binned(parts, b), coarse)
+    found = _detect_still(_binned(parts, b), coarse)
     corners = (found.corners_px + 0.5) * b - 0.5
     return replace(found, corners_px=corners, T_cam_world=_solve_pnp(corners, config))
 
@@ -537,7 +537,7 @@ def region_cell_px(region: BlinkRegion, config: ReceiverConfig) -> float:
     return max(side, 0) / config.geometry.locator_side
 
 
-def detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
+def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     """The paper's path: per-pixel triplets, the locator band's phase, the phase-locked image."""
     params, cam = config.detector, config.camera
     heat, triplets = blink_heatmap(parts, cam.width, cam.height, config.blink_hz, params.sigma_frac)
