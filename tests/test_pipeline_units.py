@@ -365,15 +365,21 @@ def test_cells_read_against_the_locator_ring_and_score_its_contrast():
     assert absent.locator_score < config.decoder.min_locator_score
 
 
+def _fast_reader(seed: int) -> tuple[CellReader, np.random.Generator, np.ndarray]:
+    """A ``fast`` reader of N = 16, a generator seeded ``seed`` and the payload cells it
+    toggled (its first draw)."""
+    config = ReceiverConfig(CameraModel(346, 260, K), cells=16, profile="fast")
+    rng = np.random.default_rng(seed)
+    n = config.geometry.locator_side
+    return CellReader(config, first_burst_us=0.0), rng, rng.integers(0, 2, (n - 2, n - 2))
+
+
 def test_fast_reads_toggles_of_both_polarities_under_a_thinning_readout():
     # Densities as a 7.4 Mev/s cap leaves them at 24 px per cell: the cells toggled on fire
     # 0.2-0.4, those toggled off 0.4-0.95, the untoggled ones a few hundredths at most.
-    config = ReceiverConfig(CameraModel(346, 260, K), cells=16, profile="fast")
-    reader = CellReader(config, first_burst_us=0.0)
-    geo = config.geometry
-    rng = np.random.default_rng(5)
+    reader, rng, toggled = _fast_reader(5)
+    geo = reader.config.geometry
     n = geo.locator_side
-    toggled = rng.integers(0, 2, (n - 2, n - 2))
     rising = rng.random((n - 2, n - 2)) < 0.5
     shape = rising.shape
     level = np.where(rising, rng.uniform(0.2, 0.4, shape), rng.uniform(0.4, 0.95, shape))
@@ -388,12 +394,9 @@ def test_fast_reads_toggles_of_both_polarities_under_a_thinning_readout():
 def test_fast_reads_dark_cells_lit_by_their_toggling_neighbours_on_the_linear_scale():
     # Blur without a cap: every toggled cell fires, while a third of the untoggled ones fire
     # for their neighbours, up to 0.45; a square root would spread those across the middle.
-    config = ReceiverConfig(CameraModel(346, 260, K), cells=16, profile="fast")
-    reader = CellReader(config, first_burst_us=0.0)
-    geo = config.geometry
-    rng = np.random.default_rng(6)
+    reader, rng, toggled = _fast_reader(6)
+    geo = reader.config.geometry
     n = geo.locator_side
-    toggled = rng.integers(0, 2, (n - 2, n - 2))
     spilled = rng.random(toggled.shape) < 0.35
     dark = np.where(
         spilled, rng.uniform(0.1, 0.45, toggled.shape), rng.uniform(0, 0.02, toggled.shape)
