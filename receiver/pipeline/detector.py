@@ -837,9 +837,10 @@ def ring_support(
     judged = on & (expected != 0)
     signed = events["p"][judged] * expected[judged]
     agree = float(np.mean(signed)) if judged.any() else 0.0
-    outer = edge[judged] < 4
-    count = np.bincount(edge[judged][outer], minlength=4)
-    total = np.bincount(edge[judged][outer], weights=signed[outer], minlength=4)
+    judged_edge = edge[judged]
+    outer = judged_edge < 4
+    count = np.bincount(judged_edge[outer], minlength=4)
+    total = np.bincount(judged_edge[outer], weights=signed[outer], minlength=4)
     seen = count >= config.tracker.min_polarity_events
     worst = float((total[seen] / count[seen]).min()) if seen.any() else 1.0
     return int(np.count_nonzero(on)), agree, worst
