@@ -61,7 +61,7 @@ def run_suite(
 def _progress(n: int, total: int, r: dict) -> None:
     """A line for a person, then the result as one JSON line (``--resume`` reads those)."""
     print(
-        f"[scenes] {n}/{total}: scene {r['draw']['index']} lock {r['first_lock_ms']} ms, "
+        f"[scenes] {n}/{total}: scene {r['draw']['index']} lock {r['right_lock_ms']} ms, "
         f"delivered {r['delivered']}, {r['wall_s']:.0f} s\n{json.dumps(r)}",
         flush=True,
     )

@@ -33,7 +33,7 @@ WRONG_M = 0.05
 LOCK_MS = 150.0
 """The lock the issue asks for: within this long of the marker appearing."""
 FIRST_LOCK_MS = 50.0
-"""The poses of a first lock's first this-many ms tell whether it locked right."""
+"""The poses of a lock's first this-many ms tell whether it locked right."""
 BURST_GAP_US = 3000
 """ON events of one pixel further apart than this (or than a third of a refresh period) belong
 to separate transitions (``on_per_transition``)."""
@@ -101,6 +101,21 @@ def on_per_transition(t: np.ndarray, pixel: np.ndarray, gap_us: float) -> tuple[
     return float(np.median(sizes[busy])), float(np.percentile(sizes[busy], 90))
 
 
+def lock_rightness(
+    lock_times_us: list[int], t: np.ndarray, position: np.ndarray
+) -> list[bool | None]:
+    """Per lock, whether it locked right: its poses of its first ``FIRST_LOCK_MS`` (before the
+    next lock) all lie within ``WRONG_M`` of the truth (None: it published no pose then)."""
+    out: list[bool | None] = []
+    for k, start in enumerate(lock_times_us):
+        end = start + FIRST_LOCK_MS * 1e3
+        if k + 1 < len(lock_times_us):
+            end = min(end, lock_times_us[k + 1])
+        early = (t >= start) & (t < end)
+        out.append(bool(position[early].max() <= WRONG_M) if early.any() else None)
+    return out
+
+
 def receiver_config(draw: SceneDraw, camera: CameraModel) -> ReceiverConfig:
     """What a user tells the receiver of ``draw``: the link settings, the calibration and the
     marker's size; everything else at its defaults."""
@@ -159,11 +174,8 @@ def run_scene(draw: SceneDraw) -> dict:
     tentative = score_poses(position[~verified], rotation[~verified])
     locks_ms = [(u - appears) / 1e3 for u in st.lock_times_us]
     first = locks_ms[0] if locks_ms else None
-    early = np.zeros(len(t), bool)
-    if locks_ms:  # the first lock's first poses: did it lock right?
-        first_us = st.lock_times_us[0]
-        early = (t >= first_us) & (t < first_us + FIRST_LOCK_MS * 1e3)
-    first_wrong = bool(early.any() and position[early].max() > WRONG_M)
+    right = lock_rightness(st.lock_times_us, t, position)
+    right_ms = next((ms for ms, ok in zip(locks_ms, right, strict=True) if ok and ms >= 0), None)
     period = 1e6 / draw.refresh_hz
     on_median, on_p90 = on_per_transition(
         np.concatenate(on_t), np.concatenate(on_pixel), min(BURST_GAP_US, period / 3)
@@ -177,8 +189,10 @@ def run_scene(draw: SceneDraw) -> dict:
         "on_per_transition_p90": None if math.isnan(on_p90) else on_p90,
         "first_lock_ms": first,
         "locked_before_marker": bool(locks_ms and locks_ms[0] < 0),
-        "lock_ok": first is not None and 0 <= first <= LOCK_MS and not first_wrong,
-        "first_lock_wrong": first_wrong,
+        "right_lock_ms": right_ms,
+        "lock_ok": right_ms is not None and right_ms <= LOCK_MS,
+        "first_lock_wrong": bool(right and right[0] is False),
+        "wrong_locks": sum(ok is False for ok in right),
         "locks": len(locks_ms),
         "losses": st.losses,
         **{
