@@ -389,6 +389,26 @@ def _run(tmp_path, keys, duration_s: float):
     return log, rec
 
 
+@pytest.mark.parametrize("refined", [True, False])
+def test_a_still_lock_on_outline_corners_is_verified_after_its_recheck(
+    tmp_path, monkeypatch, refined
+):
+    # Outline corners can lie a pixel or two off (a window that mixed the marker's first frames
+    # with what came before): a still lock on them publishes its poses unverified until a fresh
+    # window has taken the pose again; one on refined corners is verified from its frames.
+    real = receiver_module.detect
+
+    def lock_on(parts, config):
+        return replace(real(parts, config), refined=refined)
+
+    monkeypatch.setattr(receiver_module, "detect", lock_on)
+    log, _ = _run(tmp_path, [(0.0, _view(tilt=10)), (0.4, _view(tilt=10))], 0.4)
+    t, verified = np.array(log.pose_t), np.array(log.pose_verified)
+    recheck = log.receiver.stats.lock_times_us[0] + log.receiver.config.detector.window_us
+    assert verified[t >= recheck + 10_000].all()
+    assert verified[t < recheck - 10_000].mean() == (1.0 if refined else 0.0)
+
+
 def test_marker_leaving_the_view_is_lost_then_reacquired_and_the_message_completes(tmp_path):
     home, away = _view(tilt=3), _view(tilt=3, shift=(0.6, 0.0))  # 0.6 m sideways: out of view
     keys = [(0.0, home), (0.62, home), (0.64, away), (0.9, away), (0.92, home), (2.2, home)]

@@ -81,8 +81,9 @@ class PoseEstimate:
     t_us: int
     T_world_cam: np.ndarray
     verified: bool = False
-    """A frame proved the lock around the pose (``Track.verified_at``); otherwise the pose
-    is tentative: a wrong lock can look right to every other check."""
+    """A frame proved the lock around the pose, on corners the receiver trusts
+    (``Track.publishes_verified``); otherwise the pose is tentative: a wrong lock can look right
+    to every other check."""
 
 
 @dataclass(frozen=True)
@@ -154,6 +155,9 @@ class Track:
     recheck_us: int | None = None
     """When a still lock's pose is next taken again from a fresh window
     (``Receiver._recheck_still``); None: never (a lock under motion)."""
+    outline_pose: bool = False
+    """A still lock's pose came from outline corners, not refined ones: its poses go out
+    unverified until the first recheck has taken the pose again (``Receiver._recheck_still``)."""
     updates_seen: int = 0
     """The receiver's pose updates at the last recheck: more since, and the camera moved."""
     missed: int = 0
@@ -170,6 +174,11 @@ class Track:
         if self.proven_at_us is None:
             return False
         return self.lapse_us is None or t_us - self.proven_at_us <= self.lapse_us
+
+    def publishes_verified(self, t_us: int) -> bool:
+        """Whether the pose at ``t_us`` goes out verified: proven then (``verified_at``) and not
+        held on outline corners (``outline_pose``)."""
+        return not self.outline_pose and self.verified_at(t_us)
 
     def failed_probation(self, frame: FrameOutput) -> bool:
         """Whether the lock must go after ``frame`` (locator seen, check failed or passed): an
@@ -359,12 +368,13 @@ class Receiver:
         frame after the burst's is still to come (``_postpone``)."""
         T, t_lock = found.T_cam_world, found.t_us
         tracker = EdgeTracker(self.config, T, t_lock, found.flow_px_per_ms)
+        outline = not found.refined
         if not found.moving:
             with self._cpu("lock"):  # a still detection may lag a slow drift: snap to the ring
                 recent = self._buffer.between(now - self.config.tracker.capture_us, now)
                 recent = to_columns(recent, self.config.camera.undistort_table)
                 if tracker.capture(recent["xu"], recent["yu"], now):
-                    T = tracker.T_cam_world
+                    T, outline = tracker.T_cam_world, False
         side = self.cell_px = cell_side_px(self.config, T)
         with self._cpu("lock"):
             span_us = _DENSITY_BLINKS * 1e6 / found.blink_hz
@@ -376,6 +386,8 @@ class Receiver:
         # Frames inside the detection window are still buffered: read them too. Under motion the
         # pose holds at the compensated burst (frame 0) and is tracked from there to now.
         window = self.config.detector.window_us
+        still_recheck = not found.moving and self.config.detector.still_recheck_us is not None
+        recheck_us = now + window if still_recheck else None
         self._track = track = Track(
             tracker,
             CellReader(self.config, found.burst_us, stride),
@@ -388,9 +400,8 @@ class Receiver:
             if q.proof_lapse_us is None
             else max(q.proof_lapse_us, 2 * self.config.frame_us),
             rechecked=[found.corners_px] if found.refined else [],
-            recheck_us=None
-            if found.moving or self.config.detector.still_recheck_us is None
-            else now + window,
+            recheck_us=recheck_us,
+            outline_pose=recheck_us is not None and outline,
             updates_seen=self.stats.pose_updates,
         )
         self._triage.reset(now, stride)
@@ -515,6 +526,7 @@ class Receiver:
         1.7 m), where refined ones from another window hold it within a few millimetres."""
         track, q = self._track, self.config.detector
         track.recheck_us = now + q.still_recheck_us
+        track.outline_pose = False
         if self.stats.pose_updates != track.updates_seen:
             track.updates_seen = self.stats.pose_updates
             track.rechecked.clear()
@@ -670,6 +682,6 @@ class Receiver:
     def _estimates(self, smoothed: list[tuple[int, np.ndarray]]) -> list[PoseEstimate]:
         track = self._track
         return [
-            PoseEstimate(t, T, verified=track is not None and track.verified_at(t))
+            PoseEstimate(t, T, verified=track is not None and track.publishes_verified(t))
             for t, T in smoothed
         ]
