@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -39,6 +40,7 @@ from eventocc.receiver.pipeline.locate import (
     fit_square,
     latest_burst_us,
     locator_blob,
+    locator_fits,
     motion_flow,
     quadrilateral,
     slow_flow,
@@ -285,6 +287,31 @@ def test_fit_square_pins_a_blurred_outline_to_the_locator(cell):
     start = centre + 1.12 * (truth - centre) + cell * np.array([1.3, -0.5])
     found = fit_square(image, start, geo.locator_side, geo.ring)
     assert np.abs(found - truth).max() < max(1.5, cell / 4), found.round(1)
+
+
+@pytest.mark.parametrize("oblique", [True, False])
+def test_a_locator_seen_obliquely_is_fitted_where_no_square_fits(oblique):
+    geo, cell, border = MarkerGeometry(16), 8, 40
+    image = _locator_image(geo, cell, border)
+    side = geo.locator_side * cell
+    truth = border + np.array([[0, 0], [side, 0], [side, side], [0, side]], float) - 0.5
+    if oblique:  # the locator's image sheared and foreshortened
+        square, truth = truth, truth + np.array([[30, 10], [-10, 25], [-35, 0], [5, -20]], float)
+        H = cv2.getPerspectiveTransform(square.astype(np.float32), truth.astype(np.float32))
+        nearest = cv2.INTER_NEAREST
+        image = cv2.warpPerspective(image.astype(np.uint8), H, image.shape[::-1], flags=nearest)
+        image = image > 0
+    centre = truth.mean(axis=0)
+    blob = centre + 1.06 * (truth - centre) + cell * np.array([0.6, -0.4])
+
+    def cells_off(quad: np.ndarray) -> float:
+        return min(np.abs(np.roll(quad, k, axis=0) - truth).max() for k in range(4)) / cell
+
+    square = fit_square(image, blob, geo.locator_side, geo.ring)
+    fits = locator_fits(image, blob, geo.locator_side, geo.ring)
+    assert (cells_off(square) > geo.ring) == oblique
+    assert len(fits) == (2 if oblique else 1) and np.array_equal(fits[-1], square)
+    assert cells_off(fits[0]) < 0.3
 
 
 @pytest.mark.parametrize("start", range(4))

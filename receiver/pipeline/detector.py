@@ -71,9 +71,9 @@ from eventocc.receiver.pipeline.locate import (
     compensated_burst,
     densest_burst_us,
     events_between,
-    fit_square,
     latest_burst_us,
     locator_blob,
+    locator_fits,
     outline,
     quadrilateral,
 )
@@ -665,9 +665,15 @@ def _locator_square(burst: CompensatedBurst, config: ReceiverConfig) -> np.ndarr
     for _ in range(2):
         quad = quadrilateral(locator_blob(burst.image, cell_px))
         cell_px = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).mean() / geo.locator_side
-    quad = fit_square(burst.image, quad, geo.locator_side, geo.ring)
-    check_quadrilateral(quad, config.detector, config.camera)
-    return quad
+    fits = locator_fits(burst.image, quad, geo.locator_side, geo.ring)
+    for fit in fits[:-1]:  # the likeliest that is a square seen through the camera
+        try:
+            check_quadrilateral(fit, config.detector, config.camera)
+            return fit
+        except MarkerNotFound:
+            continue
+    check_quadrilateral(fits[-1], config.detector, config.camera)
+    return fits[-1]
 
 
 def _burst_detection(
