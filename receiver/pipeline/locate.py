@@ -364,9 +364,7 @@ def fit_square(image: np.ndarray, quad: np.ndarray, locator_side: int, ring: int
     is the most lit and whose outer band (the dark ring around the locator) the least, in the
     blurred ``image``; a grid of shifts, scales and turns, then finer ones down to
     ``_SQUARE_FINEST_PX``."""
-    lit = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
-    inner = _square_outline(0.5 - 0.5 / locator_side)
-    outer = _square_outline(0.5 + 0.5 * ring / locator_side)
+    lit, inner, outer = _bands(image, locator_side, ring)
     sides = np.roll(quad, -1, axis=0) - quad
     side = np.linalg.norm(sides, axis=1).mean()
     cell = side / locator_side
@@ -394,10 +392,45 @@ def fit_square(image: np.ndarray, quad: np.ndarray, locator_side: int, ring: int
         )
         best = h[np.argmax(contrast(h))]
         r /= 2
-    cx, cy, length, angle = best
-    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-    unit = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
-    return np.array([cx, cy]) + length * unit @ rotation.T
+    corners = np.empty((4, 2))
+    _square_corners(best, corners)
+    return corners
+
+
+@numba.njit(cache=True)
+def _square_corners(h: np.ndarray, out: np.ndarray) -> None:
+    """Into ``out`` (4, 2): the corners, clockwise on screen, of the square h = (cx, cy, side,
+    turn)."""
+    c, s = math.cos(h[3]), math.sin(h[3])
+    for i, (u, v) in enumerate(((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5))):
+        out[i, 0] = h[0] + h[2] * (c * u - s * v)
+        out[i, 1] = h[1] + h[2] * (s * u + c * v)
+
+
+@numba.njit(cache=True)
+def _square_contrast(
+    lit: np.ndarray, h: np.ndarray, inner: np.ndarray, outer: np.ndarray
+) -> np.ndarray:
+    """``_quad_contrast`` of squares h = (cx, cy, side, turn), (k, 4): ten thousand hypotheses
+    of two hundred samples each, compiled since numpy's temporaries for them cost far more
+    than the arithmetic."""
+    out = np.empty(h.shape[0])
+    corners = np.empty((4, 2))
+    for k in range(h.shape[0]):
+        _square_corners(h[k], corners)
+        out[k] = _band_mean(lit, corners, inner) - _band_mean(lit, corners, outer)
+    return out
+
+
+def _bands(
+    image: np.ndarray, locator_side: int, ring: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The blurred ``image`` and, in unit square coordinates, the locator ring's band (the
+    middle of its cells) and the band of the dark ring around it, which the fits contrast."""
+    lit = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
+    inner = 0.5 + _square_outline(0.5 - 0.5 / locator_side)
+    outer = 0.5 + _square_outline(0.5 + 0.5 * ring / locator_side)
+    return lit, inner, outer
 
 
 def locator_fits(
@@ -409,9 +442,7 @@ def locator_fits(
     fits the locator's bands clearly better (``_QUAD_MARGIN``). A marker seen obliquely images
     its locator as a skewed quadrilateral that no square fits within a ring width."""
     square = fit_square(image, blob, locator_side, ring)
-    lit = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
-    inner = 0.5 + _square_outline(0.5 - 0.5 / locator_side)
-    outer = 0.5 + _square_outline(0.5 + 0.5 * ring / locator_side)
+    lit, inner, outer = _bands(image, locator_side, ring)
     fits = [_fit_quad(lit, start, locator_side, inner, outer) for start in (square, blob)]
     quad, contrast = max(fits, key=lambda fit: fit[1])
     if contrast > _QUAD_MARGIN * _quad_contrast(lit, square[None], inner, outer)[0]:
@@ -454,48 +485,23 @@ def _quad_contrast(
     square coordinates (0..1, clockwise from the first corner) and mapped bilinearly."""
     out = np.empty(quads.shape[0])
     for k in range(quads.shape[0]):
-        out[k] = _bilinear_band_mean(lit, quads[k], inner) - _bilinear_band_mean(
-            lit, quads[k], outer
-        )
+        out[k] = _band_mean(lit, quads[k], inner) - _band_mean(lit, quads[k], outer)
     return out
 
 
 @numba.njit(cache=True, inline="always")
-def _bilinear_band_mean(lit, q, band):
+def _band_mean(lit, q, band):
+    """Mean of ``lit`` over ``band`` (unit square coordinates) mapped bilinearly onto the
+    quadrilateral ``q``: q0 + u (q1 - q0) + v (q3 - q0) + u v (q2 - q1 - q3 + q0)."""
+    ux, uy = q[1, 0] - q[0, 0], q[1, 1] - q[0, 1]
+    vx, vy = q[3, 0] - q[0, 0], q[3, 1] - q[0, 1]
+    wx, wy = q[2, 0] - q[1, 0] - vx, q[2, 1] - q[1, 1] - vy
     total = 0.0
     for i in range(band.shape[0]):
         u, v = band[i, 0], band[i, 1]
-        w0, w1, w2, w3 = (1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v
-        x = w0 * q[0, 0] + w1 * q[1, 0] + w2 * q[2, 0] + w3 * q[3, 0]
-        y = w0 * q[0, 1] + w1 * q[1, 1] + w2 * q[2, 1] + w3 * q[3, 1]
-        xi = min(max(int(np.rint(x)), 0), lit.shape[1] - 1)
-        yi = min(max(int(np.rint(y)), 0), lit.shape[0] - 1)
-        total += lit[yi, xi]
-    return total / band.shape[0]
-
-
-@numba.njit(cache=True)
-def _square_contrast(
-    lit: np.ndarray, h: np.ndarray, inner: np.ndarray, outer: np.ndarray
-) -> np.ndarray:
-    """Inner minus outer band brightness of squares h = (cx, cy, side, turn), (k, 4): ten
-    thousand hypotheses of two hundred samples each, compiled since numpy's temporaries for them
-    cost far more than the arithmetic."""
-    out = np.empty(h.shape[0])
-    for k in range(h.shape[0]):
-        c, s = math.cos(h[k, 3]), math.sin(h[k, 3])
-        out[k] = _band_mean(lit, h[k], c, s, inner) - _band_mean(lit, h[k], c, s, outer)
-    return out
-
-
-@numba.njit(cache=True, inline="always")
-def _band_mean(lit, hk, c, s, band):
-    total = 0.0
-    for q in range(band.shape[0]):
-        x = hk[0] + hk[2] * (c * band[q, 0] - s * band[q, 1])
-        y = hk[1] + hk[2] * (s * band[q, 0] + c * band[q, 1])
-        xi = min(max(int(np.rint(x)), 0), lit.shape[1] - 1)
-        yi = min(max(int(np.rint(y)), 0), lit.shape[0] - 1)
+        uv = u * v
+        xi = min(max(int(np.rint(q[0, 0] + u * ux + v * vx + uv * wx)), 0), lit.shape[1] - 1)
+        yi = min(max(int(np.rint(q[0, 1] + u * uy + v * vy + uv * wy)), 0), lit.shape[0] - 1)
         total += lit[yi, xi]
     return total / band.shape[0]
 
