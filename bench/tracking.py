@@ -20,6 +20,7 @@ from bench.report import write_section
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.pipeline.config import ReceiverConfig, TrackerParams
+from eventocc.receiver.pipeline.locate import QUAD_MARGIN
 from eventocc.receiver.pipeline.metrics import held_s, pose_errors
 from eventocc.receiver.pipeline.receiver import Receiver
 from eventocc.receiver.pipeline.report import FrameTruth, decode_events
@@ -160,7 +161,8 @@ def write_report(rows: list[dict], flows: list[float], duration: float, command:
         ">= 1 kHz poses. "
         "Detection under motion: a blink map of 8 px tiles, one motion-compensated burst (read at "
         "the map's phase and, failing that, where its ON events lie densest), a fitted "
-        "locator square. Up to "
+        "locator square (a quadrilateral with free corners instead where that fits the "
+        f"locator's bands {QUAD_MARGIN:g}x better: a marker seen obliquely). Up to "
         f"{config.detector.max_square_flow_px_per_ms:g} px/ms of flow the square gives the pose "
         "itself if it reads the 'L' at >= "
         f"{config.detector.min_square_orientation_score:g} (a slow ring fires too little beside "

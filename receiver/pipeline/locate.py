@@ -74,7 +74,7 @@ _SQUARE_SCALES = np.arange(0.84, 1.07, 0.02)
 _SQUARE_TURNS = np.radians([-3.0, -1.5, 0.0, 1.5, 3.0])
 _QUAD_PASSES = 4
 """Rounds over the four corners at each step of ``_fit_quad`` (fewer if none moves)."""
-_QUAD_MARGIN = 1.2
+QUAD_MARGIN = 1.2
 """How much better a free quadrilateral must fit the locator's bands than the square to be
 tried first: freeing the corners buys a few per cent of contrast from the burst's noise alone
 (a square-on locator: +3-5%, with corners moved up to two cells), where a locator seen 35-45
@@ -439,13 +439,13 @@ def locator_fits(
     """(4, 2) corners the locator may have in the burst ``image``, the likeliest first: the
     square fitted near the blob's quadrilateral ``blob`` (``fit_square``), after the best
     quadrilateral fitted with each corner free (from the square and from ``blob``) when that
-    fits the locator's bands clearly better (``_QUAD_MARGIN``). A marker seen obliquely images
+    fits the locator's bands clearly better (``QUAD_MARGIN``). A marker seen obliquely images
     its locator as a skewed quadrilateral that no square fits within a ring width."""
     square = fit_square(image, blob, locator_side, ring)
     lit, inner, outer = _bands(image, locator_side, ring)
     fits = [_fit_quad(lit, start, locator_side, inner, outer) for start in (square, blob)]
     quad, contrast = max(fits, key=lambda fit: fit[1])
-    if contrast > _QUAD_MARGIN * _quad_contrast(lit, square[None], inner, outer)[0]:
+    if contrast > QUAD_MARGIN * _quad_contrast(lit, square[None], inner, outer)[0]:
         return [quad, square]
     return [square]
 
