@@ -803,15 +803,21 @@ def _capture_ring(
     and its polarity agreements (overall, the worst side's). Captures start at scaled copies
     of the locator's quadrilateral (any rotation: the ring is square), and at the same a ring
     width smaller: the blob and the fitted square often take the ring's inner edge for the
-    locator's outline."""
+    locator's outline. Each of those two also starts a ring width off along either side's
+    direction: a burst's fit lies a cell or two off under motion, and a capture from there
+    settles on the edges of the rings beside the right ones."""
     xu, yu = events["xu"], events["yu"]
     geo = config.geometry
     smaller = geo.tracked_side / (geo.tracked_side + 2 * geo.ring)
-    scales = _CAPTURE_SCALES + tuple(smaller * s for s in _CAPTURE_SCALES)
     centre = quad.mean(axis=0)
+    scaled = [centre + s * (quad - centre) for s in _CAPTURE_SCALES]
+    scaled += [centre + smaller * s * (quad - centre) for s in _CAPTURE_SCALES]
+    sides = np.array([quad[1] - quad[0], quad[3] - quad[0]]) * geo.ring / geo.locator_side
+    steps = np.concatenate([sides, -sides])
+    starts = scaled + [start + step for start in (scaled[0], scaled[3]) for step in steps]
     best, best_key = None, None
-    for scale in scales:
-        tracker = EdgeTracker(config, _solve_pnp(centre + scale * (quad - centre), config), t_us)
+    for start in starts:
+        tracker = EdgeTracker(config, _solve_pnp(start, config), t_us)
         if not tracker.capture(xu, yu, t_us, (events["p"], flow)):
             continue
         on, agree, worst = ring_support(tracker.T_cam_world, events, flow, config)
