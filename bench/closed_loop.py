@@ -282,6 +282,12 @@ def main(argv: list[str] | None = None) -> None:
         "holds, keeping the other scenes' auto runs (a new controller changes nothing the sweep "
         "measured)",
     )
+    parser.add_argument(
+        "--sweep-only",
+        action="store_true",
+        help="sweep the fixed settings of the scenes asked for into the results file, no auto "
+        "runs and no section (then `--auto-only`)",
+    )
     args = parser.parse_args(argv)
     results = args.out / "results" / "closed_loop.json"
     fixed: list[FixedPoint] = []
@@ -317,16 +323,17 @@ def main(argv: list[str] | None = None) -> None:
                     flush=True,
                 )
                 fixed.append(p)
-            best = max(p.goodput_bps for p in mine)
-            revisions[scene_key("auto", distance, motion)] = REVISION
-            auto.append(run_auto(distance, motion, best))
-            a = auto[-1]
-            print(
-                f"{distance:g} m {motion} auto: {_k(a.steady_bps)} kbit/s steady, "
-                f"message {'ok' if a.message_ok else 'LOST'} at {a.message_done_s}, "
-                f"{' -> '.join(s for _, s, _ in a.segments)} ({a.wall_s:.0f} s)",
-                flush=True,
-            )
+            if not args.sweep_only:
+                best = max(p.goodput_bps for p in mine)
+                revisions[scene_key("auto", distance, motion)] = REVISION
+                auto.append(run_auto(distance, motion, best))
+                a = auto[-1]
+                print(
+                    f"{distance:g} m {motion} auto: {_k(a.steady_bps)} kbit/s steady, "
+                    f"message {'ok' if a.message_ok else 'LOST'} at {a.message_done_s}, "
+                    f"{' -> '.join(s for _, s, _ in a.segments)} ({a.wall_s:.0f} s)",
+                    flush=True,
+                )
             if not args.no_write:  # each scene as it is done: a long run may be resumed
                 results.parent.mkdir(parents=True, exist_ok=True)
                 scenes = {
@@ -335,6 +342,8 @@ def main(argv: list[str] | None = None) -> None:
                     "auto": [asdict(a) for a in auto],
                 }
                 results.write_text(json.dumps(scenes, indent=1))
+    if args.sweep_only:
+        return
     if args.no_write:
         print(report(fixed, auto, revisions))
         return
