@@ -30,6 +30,14 @@ How it chooses, and why:
   setting that failed is held off for ``holdoff_s``, doubled each time it fails again sooner
   after its return than it was held off, so the link neither retries a setting beyond the
   camera at once nor stays below one that fails only now and then.
+- Near the limit it probes. Pixels per cell are measured, not known: a hand-held camera's
+  window holds its swing's fewest, and what a profile needs is known to a few percent. When
+  no setting that carries more fits with ``up_margin``, the one predicted surest among those
+  at least ``probe_margin`` of what they need is tried: kept once a judgement's time of it passes
+  ``pass_up`` of its frames, left for where it came from as soon as fewer pass. A failed
+  probe is remembered with the pixels per cell predicted for it (``FailedProbe``): it is not
+  tried again for ``probe_memory_s`` unless the camera came closer, so the link does not
+  oscillate across the limit.
 """
 
 from __future__ import annotations
@@ -276,6 +284,15 @@ class PolicyConfig:
     burst, in a setting that works)."""
     max_holdoff_s: float = 60.0
     allow_fast: bool = True
+    probe_margin: float = 0.95
+    """A setting predicted at least this share of ``min_px`` (but below ``up_margin``) is
+    probed: the measured pixels per cell (a swing's fewest) and the profiles' needs are known
+    to about 5%."""
+    probe_memory_s: float = 30.0
+    """A failed probe is not tried again for this long..."""
+    probe_retry_gain: float = 1.05
+    """...unless the pixels per cell predicted for it grew by this factor (the camera came
+    closer)."""
 
 
 @dataclass(frozen=True)
@@ -294,6 +311,25 @@ class HoldOff:
     span_s: float
 
 
+@dataclass(frozen=True)
+class Probe:
+    """A setting on trial (``choice``), tried from ``origin`` at ``px`` predicted pixels per
+    cell."""
+
+    choice: LinkChoice
+    origin: LinkChoice
+    px: float
+
+
+@dataclass(frozen=True)
+class FailedProbe:
+    """A probe that failed at ``px`` predicted pixels per cell: not tried again before
+    ``until_s`` unless predicted ``probe_retry_gain`` higher."""
+
+    px: float
+    until_s: float
+
+
 @dataclass
 class LinkPolicy:
     """One receiver's controller. ``decide`` is called with the window of the settings on screen
@@ -304,13 +340,25 @@ class LinkPolicy:
     config: PolicyConfig = field(default_factory=PolicyConfig)
     held_off: dict[LinkChoice, HoldOff] = field(default_factory=dict)
     """Settings that failed, and until when they are not chosen."""
+    probe: Probe | None = None
+    """The setting on trial, if the one on screen is."""
+    failed_probes: dict[LinkChoice, FailedProbe] = field(default_factory=dict)
 
     def decide(
         self, current: LinkChoice, window: LinkWindow, recent: LinkWindow, now_s: float
     ) -> Decision:
         """``window``: all of ``current``'s reports since it went on screen; ``recent``: the
         last ``config.loss_window_s`` of them."""
+        if self.probe is not None and self.probe.choice != current:
+            self.probe = None  # another receiver's choice is served: the trial is over
         trouble = self._trouble(window, recent, current)
+        if self.probe is not None:
+            trouble = trouble or self._probe_trouble(window)
+            if trouble:
+                return self._probe_failed(current, window, now_s, trouble)
+            if window.span_s < self.config.settle_s + self.config.judge_s:
+                return Decision(current, f"probing {current} (from {self.probe.origin})", False)
+            self.probe = None
         if trouble:
             return self._step_down(current, window, now_s, trouble)
         held = self._why_hold(current, window, recent)
@@ -392,6 +440,43 @@ class LinkPolicy:
             target, f"down from {current}: {trouble} (held off {span:g} s)", target != current
         )
 
+    # --- probes -------------------------------------------------------------------------
+    def _probe_trouble(self, window: LinkWindow) -> str:
+        """A probe is kept only while it passes ``pass_up`` of its frames, from its first
+        judgement on."""
+        c = self.config
+        if window.span_s < c.settle_s or window.expected < c.min_frames:
+            return ""
+        if window.pass_share < c.pass_up:
+            return f"{window.pass_share:.0%} of frames passed (keeping it needs {c.pass_up:.0%})"
+        return ""
+
+    def _probe_failed(
+        self, current: LinkChoice, window: LinkWindow, now_s: float, trouble: str
+    ) -> Decision:
+        """Back to where the probe came from, the probe remembered."""
+        assert self.probe is not None
+        probe, self.probe = self.probe, None
+        c = self.config
+        self.failed_probes[current] = FailedProbe(probe.px, now_s + c.probe_memory_s)
+        self._hold_off(current, window.span_s, now_s)
+        return Decision(
+            probe.origin,
+            f"probe of {current} at {probe.px:.1f} px per cell failed: {trouble}; back "
+            f"(not tried again for {c.probe_memory_s:g} s unless the cells grow)",
+            True,
+        )
+
+    def _probe_blocked(self, choice: LinkChoice, px: float, now_s: float) -> bool:
+        """A failed probe of ``choice`` is remembered and the pixels per cell predicted for
+        it now are not ``probe_retry_gain`` above those it failed at."""
+        failed = self.failed_probes.get(choice)
+        return (
+            failed is not None
+            and failed.until_s > now_s
+            and px < failed.px * self.config.probe_retry_gain
+        )
+
     # --- up -----------------------------------------------------------------------------
     def _why_hold(self, current: LinkChoice, window: LinkWindow, recent: LinkWindow) -> str:
         c = self.config
@@ -415,11 +500,57 @@ class LinkPolicy:
         """To the setting that carries most among those whose predicted pixels per cell keep
         ``up_margin`` over what their profile needs, not held off, at most
         ``max_cells_factor`` times the cells; none with more cells while the errors look like
-        the cells' own (``_near_limit``)."""
+        the cells' own (``_near_limit``). If none carries more than ``current``, a probe of the
+        one that does predicted surest (most pixels per cell over what its profile needs)
+        among those predicted at least ``probe_margin`` of it."""
         c = self.config
         px = _low(window)
         assert px is not None
         near = self._near_limit(current, window)
+        bps = current.payload_bps(self.display_hz)
+        options = self._options(current, window, now_s, c.up_margin, near)
+        best = max(options, key=lambda o: o.payload_bps(self.display_hz), default=None)
+        if best is not None and best.payload_bps(self.display_hz) > bps:
+            return Decision(best, f"up from {current}: {px:.1f} px per cell, clean window", True)
+        if near:
+            need = c.min_px[current.profile]
+            return Decision(
+                current,
+                f"BER before FEC {window.ber:.2%} at {px:.1f} px per cell, near the "
+                f"{need:g} {current.profile} needs: smaller cells would add errors",
+                False,
+            )
+        above = [
+            o
+            for o in self._options(current, window, now_s, c.probe_margin, near)
+            if o.payload_bps(self.display_hz) > bps
+        ]
+        # The surest first: the most pixels per cell over what its profile needs.
+        probe = max(
+            above,
+            key=lambda o: (self._ratio(o, current, px), -o.payload_bps(self.display_hz)),
+            default=None,
+        )
+        if probe is None:
+            return Decision(current, self._top_reason(current, px, now_s), False)
+        predicted = px_at(px, current.cells, probe.cells)
+        self.probe = Probe(probe, current, predicted)
+        need = c.min_px[probe.profile]
+        return Decision(
+            probe,
+            f"probe from {current}: {predicted:.1f} px per cell predicted, {probe.profile} "
+            f"needs {need:g}",
+            True,
+        )
+
+    def _options(
+        self, current: LinkChoice, window: LinkWindow, now_s: float, margin: float, near: bool
+    ) -> list[LinkChoice]:
+        """The settings a step up may go to whose predicted pixels per cell keep ``margin``
+        over what their profile needs."""
+        c = self.config
+        px = _low(window)
+        assert px is not None
         full = window.readout_share is not None and window.readout_share > c.readout_up
         options = []
         for profile in AUTO_PROFILES if c.allow_fast else ("robust",):
@@ -431,8 +562,9 @@ class LinkPolicy:
                     if (
                         cells > current.cells * c.max_cells_factor
                         or (near and cells > current.cells)
-                        or not self._fits(choice, current, px, c.up_margin)
+                        or not self._fits(choice, current, px, margin)
                         or self.is_held_off(choice, now_s)
+                        or self._probe_blocked(choice, px_at(px, current.cells, cells), now_s)
                         or (
                             profile == "fast"
                             and self._shift(choice, current, window) > c.fast_max_shift
@@ -440,20 +572,7 @@ class LinkPolicy:
                     ):
                         continue
                     options.append(choice)
-        best = max(options, key=lambda o: o.payload_bps(self.display_hz), default=None)
-        if best is None or best.payload_bps(self.display_hz) <= current.payload_bps(
-            self.display_hz
-        ):
-            if near:
-                need = c.min_px[current.profile]
-                return Decision(
-                    current,
-                    f"BER before FEC {window.ber:.2%} at {px:.1f} px per cell, near the "
-                    f"{need:g} {current.profile} needs: smaller cells would add errors",
-                    False,
-                )
-            return Decision(current, self._top_reason(current, px, now_s), False)
-        return Decision(best, f"up from {current}: {px:.1f} px per cell, clean window", True)
+        return options
 
     def _shift(self, choice: LinkChoice, current: LinkChoice, window: LinkWindow) -> float:
         """Cells the marker moves in one frame of ``choice`` at the window's fastest motion."""
@@ -492,6 +611,10 @@ class LinkPolicy:
             f"px per cell: {px:.1f} now, {px_at(px, current.cells, up[0]):.1f} at N = {up[0]}; "
             f"{current.profile} needs {need:.1f}"
         )
+
+    def _ratio(self, choice: LinkChoice, current: LinkChoice, px: float) -> float:
+        """Predicted pixels per cell of ``choice`` over what its profile needs."""
+        return px_at(px, current.cells, choice.cells) / self.config.min_px[choice.profile]
 
     def _fits(self, choice: LinkChoice, current: LinkChoice, px: float, margin: float) -> bool:
         return px_at(px, current.cells, choice.cells) >= self.config.min_px[choice.profile] * margin
