@@ -33,11 +33,13 @@ How it chooses, and why:
 - Near the limit it probes. Pixels per cell are measured, not known: a hand-held camera's
   window holds its swing's fewest, and what a profile needs is known to a few percent. When
   no setting that carries more fits with ``up_margin``, the one predicted surest among those
-  at least ``probe_margin`` of what they need is tried: kept once a judgement's time of it passes
-  ``pass_up`` of its frames, left for where it came from as soon as fewer pass. A failed
-  probe is remembered with the pixels per cell predicted for it (``FailedProbe``): it is not
-  tried again for ``probe_memory_s`` unless the camera came closer, so the link does not
-  oscillate across the limit.
+  at least ``probe_margin`` of what they need is tried. It is kept once a judgement's time of
+  it carries more than where it came from (its share of frames passing, counted from its
+  lock's first passed frame, times what each carries), and left for where it came from as
+  soon as it does not, or on any trouble that steps down. A failed probe is remembered with
+  the pixels per cell predicted for it (``FailedProbe``): it is not tried again for
+  ``probe_memory_s`` unless the camera came closer, so the link does not oscillate across
+  the limit.
 """
 
 from __future__ import annotations
@@ -155,10 +157,18 @@ class LinkWindow:
     px_per_cell_low: float | None = None
     """The fewest pixels per cell any report of the window gave (a hand-held camera's swing
     nearest to the limit); None: as ``px_per_cell``."""
+    expected_locked: float = 0.0
+    """Data frames sent since the first frame that passed (0: none passed)."""
 
     @property
     def pass_share(self) -> float:
         return self.passed / self.expected if self.expected > 0 else 0.0
+
+    @property
+    def locked_share(self) -> float:
+        """Share of the data frames sent since the first that passed that passed: a new
+        lock's first frames fail at any density."""
+        return self.passed / self.expected_locked if self.expected_locked > 0 else 0.0
 
 
 class LinkMeter:
@@ -187,6 +197,9 @@ class LinkMeter:
         if self.samples:
             counted = max(0.0, min(span, now_s - self.samples[0].t_s + 1 / rate))
         pxs = [s.px_per_cell for s in got if s.px_per_cell is not None]
+        locked = 0.0
+        if passed:
+            locked = max(0.0, min(span, now_s - passed[0].t_s + 1 / rate))
         return LinkWindow(
             span_s=span,
             expected=counted * rate,
@@ -199,6 +212,7 @@ class LinkMeter:
             realtime_margin=_latest(got, "realtime_margin"),
             silent_s=now_s - got[-1].t_s if got else span,
             px_per_cell_low=min(pxs) if pxs else None,
+            expected_locked=locked * rate,
         )
 
 
@@ -314,11 +328,12 @@ class HoldOff:
 @dataclass(frozen=True)
 class Probe:
     """A setting on trial (``choice``), tried from ``origin`` at ``px`` predicted pixels per
-    cell."""
+    cell; kept while at least ``need`` of its frames pass."""
 
     choice: LinkChoice
     origin: LinkChoice
     px: float
+    need: float
 
 
 @dataclass(frozen=True)
@@ -356,7 +371,8 @@ class LinkPolicy:
             trouble = trouble or self._probe_trouble(window)
             if trouble:
                 return self._probe_failed(current, window, now_s, trouble)
-            if window.span_s < self.config.settle_s + self.config.judge_s:
+            c = self.config
+            if window.span_s < c.settle_s + c.judge_s or window.expected_locked < c.min_frames:
                 return Decision(current, f"probing {current} (from {self.probe.origin})", False)
             self.probe = None
         if trouble:
@@ -442,13 +458,18 @@ class LinkPolicy:
 
     # --- probes -------------------------------------------------------------------------
     def _probe_trouble(self, window: LinkWindow) -> str:
-        """A probe is kept only while it passes ``pass_up`` of its frames, from its first
-        judgement on."""
+        """A probe is kept only while it carries more than where it came from: from its
+        lock's first passed frame on (a new lock's first frames fail at any density), at
+        least ``need`` of its frames pass. (Frames read and none passing are losses.)"""
+        assert self.probe is not None
         c = self.config
-        if window.span_s < c.settle_s or window.expected < c.min_frames:
+        if window.span_s < c.settle_s or window.expected_locked < c.min_frames:
             return ""
-        if window.pass_share < c.pass_up:
-            return f"{window.pass_share:.0%} of frames passed (keeping it needs {c.pass_up:.0%})"
+        if window.locked_share < self.probe.need:
+            return (
+                f"{window.locked_share:.0%} of frames passed since its lock (carrying more "
+                f"than {self.probe.origin} needs {self.probe.need:.0%})"
+            )
         return ""
 
     def _probe_failed(
@@ -534,7 +555,10 @@ class LinkPolicy:
         if probe is None:
             return Decision(current, self._top_reason(current, px, now_s), False)
         predicted = px_at(px, current.cells, probe.cells)
-        self.probe = Probe(probe, current, predicted)
+        # It must carry more than the origin does now: its share of frames passing times what
+        # each carries.
+        share = min(window.pass_share, 1.0) * bps / probe.payload_bps(self.display_hz)
+        self.probe = Probe(probe, current, predicted, max(share, c.pass_down))
         need = c.min_px[probe.profile]
         return Decision(
             probe,

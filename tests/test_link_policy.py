@@ -382,3 +382,52 @@ def test_the_evk4_defaults_climb_to_the_smallest_cells_it_reads(
     )
     assert reasons and all(r.startswith(("up", "probe")) for r, _ in reasons)
     assert end == top
+
+
+def _probe_at_robust_80(policy: LinkPolicy) -> float:
+    """Robust N = 72 read cleanly at 5.5 px per cell, a hand's swing at its fewest (5.1
+    predicted at N = 80, under the 5.15 a step asks): the policy probes N = 80. Returns the
+    time it did."""
+    robust72, meter = LinkChoice("robust", 72), LinkMeter(LinkChoice("robust", 72), 60.0, 0.0)
+    rate = 60.0 * get_profile("robust").data_share
+    t = 0.0
+    while t < 0.6:
+        t += 1 / rate
+        meter.add(FrameSample(t, True, 0.0, 5.52, 0.9, 0.4, None))
+    probe = policy.decide(robust72, meter.window(t), meter.window(t, 0.3), t)
+    assert probe.changed and probe.choice == LinkChoice("robust", 80), probe
+    assert probe.reason.startswith("probe from robust N = 72")
+    return t
+
+
+@pytest.mark.parametrize(("after_lock", "kept"), [(1.0, True), (0.9, True), (0.7, False)])
+def test_a_probe_is_judged_from_its_lock_and_kept_if_it_carries_more(
+    after_lock: float, kept: bool
+) -> None:
+    """The probe's first two frames fail (a new lock's first frames fail at any density);
+    from its first passed frame on it is kept if its share passing, times the 24% more each of
+    its frames carries, beats the 100% its origin passed."""
+    policy = LinkPolicy()
+    t0 = _probe_at_robust_80(policy)
+    robust80 = LinkChoice("robust", 80)
+    meter = LinkMeter(robust80, 60.0, t0)
+    rate = 60.0 * get_profile("robust").data_share
+    t, frames, decisions = t0 + 0.1, 0, []
+    while t < t0 + 1.5:
+        t += 1 / rate
+        frames += 1
+        ok = frames > 2 and math.floor((frames - 2) * after_lock) > math.floor(
+            (frames - 3) * after_lock
+        )
+        meter.add(FrameSample(t, ok, 0.002 if ok else None, 5.3, 0.9, 0.4, None))
+        decision = policy.decide(robust80, meter.window(t), meter.window(t, 0.3), t)
+        decisions.append(decision)
+        if decision.changed:
+            break
+    if kept:
+        assert not any(d.changed for d in decisions)
+        assert policy.probe is None and not decisions[-1].reason.startswith("probing")
+    else:
+        assert decisions[-1].changed and decisions[-1].choice == LinkChoice("robust", 72)
+        assert "failed" in decisions[-1].reason and robust80 in policy.failed_probes
+        assert t - t0 < 0.8  # at once: within a judgement's frames after the lock
