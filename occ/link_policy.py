@@ -475,18 +475,20 @@ class LinkPolicy:
     def _probe_failed(
         self, current: LinkChoice, window: LinkWindow, now_s: float, trouble: str
     ) -> Decision:
-        """Back to where the probe came from, the probe remembered."""
+        """Back to where the probe came from, the probe remembered; one notch down as from
+        any failure if the cells measured now no longer fit there (the camera moved away)."""
         assert self.probe is not None
         probe, self.probe = self.probe, None
         c = self.config
         self.failed_probes[current] = FailedProbe(probe.px, now_s + c.probe_memory_s)
+        why = f"probe of {current} at {probe.px:.1f} px per cell failed: {trouble}"
+        memory = f"not tried again for {c.probe_memory_s:g} s unless the cells grow"
+        px = window.px_per_cell
+        if px is not None and not self._fits(probe.origin, current, px, 1.0):
+            down = self._step_down(current, window, now_s, trouble)
+            return Decision(down.choice, f"{why}; down ({memory})", down.changed)
         self._hold_off(current, window.span_s, now_s)
-        return Decision(
-            probe.origin,
-            f"probe of {current} at {probe.px:.1f} px per cell failed: {trouble}; back "
-            f"(not tried again for {c.probe_memory_s:g} s unless the cells grow)",
-            True,
-        )
+        return Decision(probe.origin, f"{why}; back ({memory})", True)
 
     def _probe_blocked(self, choice: LinkChoice, px: float, now_s: float) -> bool:
         """A failed probe of ``choice`` is remembered and the pixels per cell predicted for
