@@ -223,8 +223,8 @@ def report(fixed: list[FixedPoint], auto: list[AutoRun], revisions: dict[str, st
     wall_fixed, wall_auto = sum(f.wall_s for f in fixed), sum(a.wall_s for a in auto)
     lines += [
         "",
-        f"Wall time on one job, the machine shared: the sweep {wall_fixed / 60:.0f} min, the "
-        f"auto runs {wall_auto / 60:.0f} min.",
+        f"Wall time summed over the scenes, each on one job, the machine shared: the sweep "
+        f"{wall_fixed / 60:.0f} min, the auto runs {wall_auto / 60:.0f} min.",
     ]
     sweeps, autos = (runs_at(revisions, kind) for kind in ("sweep", "auto"))
     if len(set(revisions.values())) > 1:
