@@ -152,10 +152,12 @@ def run_link(
     policy: LinkPolicy | None = None,
     realtime_margin: Callable[[], float | None] = lambda: None,
     stop_when_done: bool = False,
+    min_s: float = 0.0,
 ) -> LinkRun:
     """Play ``message`` for ``duration_s`` of event time: at ``fixed`` settings (as the fixed
     mode sends, unpacked), or under ``policy`` (packed, from ``start_choice``), the receiver
-    rebuilt at each change and keeping its progress."""
+    rebuilt at each change and keeping its progress. ``stop_when_done``: stop once the message
+    is out and ``min_s`` has passed."""
     if (fixed is None) == (policy is None):
         raise ValueError("give fixed settings or a policy")
     choice = fixed if fixed is not None else start_choice(loop.display_hz)
@@ -165,9 +167,13 @@ def run_link(
     receiver: Receiver | None = None
     verified: list[tuple[float, int]] = []
     done_s, ok, first_read, events = None, True, None, 0
-    end_us = round(duration_s * 1e6)
+    end_us, min_us = round(duration_s * 1e6), round(min_s * 1e6)
     readout = loop.readout_events_per_s()
-    while t_us < end_us and not (stop_when_done and done_s is not None):
+
+    def done() -> bool:
+        return stop_when_done and done_s is not None and t_us >= min_us
+
+    while t_us < end_us and not done():
         enc = StreamEncoder(
             message,
             name="closed-loop.bin",
@@ -208,7 +214,7 @@ def run_link(
                 elif isinstance(out, MessageOutput):
                     ok = ok and done_s is None and out.message.data == message
                     done_s = done_s if done_s is not None else out.t_us / 1e6
-            if stop_when_done and done_s is not None:
+            if done():
                 break
             if policy is not None and t_us % DECIDE_EVERY_US == 0:
                 now = t_us / 1e6

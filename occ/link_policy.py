@@ -30,6 +30,16 @@ How it chooses, and why:
   setting that failed is held off for ``holdoff_s``, doubled each time it fails again sooner
   after its return than it was held off, so the link neither retries a setting beyond the
   camera at once nor stays below one that fails only now and then.
+- Near the limit it probes. Pixels per cell are measured, not known: a hand-held camera's
+  window holds its swing's fewest, and what a profile needs is known to a few percent. When
+  no setting that carries more fits with ``up_margin``, the one predicted surest among those
+  at least ``probe_margin`` of what they need is tried. It is kept once a judgement's time of
+  it carries more than where it came from (its share of frames passing, counted from its
+  lock's first passed frame, times what each carries), and left for where it came from as
+  soon as it does not, or on any trouble that steps down. A failed probe is remembered with
+  the pixels per cell predicted for it (``FailedProbe``): it is not tried again for
+  ``probe_memory_s`` unless the camera came closer, so the link does not oscillate across
+  the limit.
 """
 
 from __future__ import annotations
@@ -147,10 +157,18 @@ class LinkWindow:
     px_per_cell_low: float | None = None
     """The fewest pixels per cell any report of the window gave (a hand-held camera's swing
     nearest to the limit); None: as ``px_per_cell``."""
+    expected_locked: float = 0.0
+    """Data frames sent since the first frame that passed (0: none passed)."""
 
     @property
     def pass_share(self) -> float:
         return self.passed / self.expected if self.expected > 0 else 0.0
+
+    @property
+    def locked_share(self) -> float:
+        """Share of the data frames sent since the first that passed that passed: a new
+        lock's first frames fail at any density."""
+        return self.passed / self.expected_locked if self.expected_locked > 0 else 0.0
 
 
 class LinkMeter:
@@ -179,6 +197,9 @@ class LinkMeter:
         if self.samples:
             counted = max(0.0, min(span, now_s - self.samples[0].t_s + 1 / rate))
         pxs = [s.px_per_cell for s in got if s.px_per_cell is not None]
+        locked = 0.0
+        if passed:
+            locked = max(0.0, min(span, now_s - passed[0].t_s + 1 / rate))
         return LinkWindow(
             span_s=span,
             expected=counted * rate,
@@ -191,6 +212,7 @@ class LinkMeter:
             realtime_margin=_latest(got, "realtime_margin"),
             silent_s=now_s - got[-1].t_s if got else span,
             px_per_cell_low=min(pxs) if pxs else None,
+            expected_locked=locked * rate,
         )
 
 
@@ -276,6 +298,15 @@ class PolicyConfig:
     burst, in a setting that works)."""
     max_holdoff_s: float = 60.0
     allow_fast: bool = True
+    probe_margin: float = 0.95
+    """A setting predicted at least this share of ``min_px`` (but below ``up_margin``) is
+    probed: the measured pixels per cell (a swing's fewest) and the profiles' needs are known
+    to about 5%."""
+    probe_memory_s: float = 30.0
+    """A failed probe is not tried again for this long..."""
+    probe_retry_gain: float = 1.05
+    """...unless the pixels per cell predicted for it grew by this factor (the camera came
+    closer)."""
 
 
 @dataclass(frozen=True)
@@ -294,6 +325,26 @@ class HoldOff:
     span_s: float
 
 
+@dataclass(frozen=True)
+class Probe:
+    """A setting on trial (``choice``), tried from ``origin`` at ``px`` predicted pixels per
+    cell; kept while at least ``need`` of its frames pass."""
+
+    choice: LinkChoice
+    origin: LinkChoice
+    px: float
+    need: float
+
+
+@dataclass(frozen=True)
+class FailedProbe:
+    """A probe that failed at ``px`` predicted pixels per cell: not tried again before
+    ``until_s`` unless predicted ``probe_retry_gain`` higher."""
+
+    px: float
+    until_s: float
+
+
 @dataclass
 class LinkPolicy:
     """One receiver's controller. ``decide`` is called with the window of the settings on screen
@@ -304,13 +355,26 @@ class LinkPolicy:
     config: PolicyConfig = field(default_factory=PolicyConfig)
     held_off: dict[LinkChoice, HoldOff] = field(default_factory=dict)
     """Settings that failed, and until when they are not chosen."""
+    probe: Probe | None = None
+    """The setting on trial, if the one on screen is."""
+    failed_probes: dict[LinkChoice, FailedProbe] = field(default_factory=dict)
 
     def decide(
         self, current: LinkChoice, window: LinkWindow, recent: LinkWindow, now_s: float
     ) -> Decision:
         """``window``: all of ``current``'s reports since it went on screen; ``recent``: the
         last ``config.loss_window_s`` of them."""
+        if self.probe is not None and self.probe.choice != current:
+            self.probe = None  # another receiver's choice is served: the trial is over
         trouble = self._trouble(window, recent, current)
+        if self.probe is not None:
+            trouble = trouble or self._probe_trouble(window)
+            if trouble:
+                return self._probe_failed(current, window, now_s, trouble)
+            c = self.config
+            if window.span_s < c.settle_s + c.judge_s or window.expected_locked < c.min_frames:
+                return Decision(current, f"probing {current} (from {self.probe.origin})", False)
+            self.probe = None
         if trouble:
             return self._step_down(current, window, now_s, trouble)
         held = self._why_hold(current, window, recent)
@@ -392,6 +456,50 @@ class LinkPolicy:
             target, f"down from {current}: {trouble} (held off {span:g} s)", target != current
         )
 
+    # --- probes -------------------------------------------------------------------------
+    def _probe_trouble(self, window: LinkWindow) -> str:
+        """A probe is kept only while it carries more than where it came from: from its
+        lock's first passed frame on (a new lock's first frames fail at any density), at
+        least ``need`` of its frames pass. (Frames read and none passing are losses.)"""
+        assert self.probe is not None
+        c = self.config
+        if window.span_s < c.settle_s or window.expected_locked < c.min_frames:
+            return ""
+        if window.locked_share < self.probe.need:
+            return (
+                f"{window.locked_share:.0%} of frames passed since its lock (carrying more "
+                f"than {self.probe.origin} needs {self.probe.need:.0%})"
+            )
+        return ""
+
+    def _probe_failed(
+        self, current: LinkChoice, window: LinkWindow, now_s: float, trouble: str
+    ) -> Decision:
+        """Back to where the probe came from, the probe remembered; one notch down as from
+        any failure if the cells measured now no longer fit there (the camera moved away)."""
+        assert self.probe is not None
+        probe, self.probe = self.probe, None
+        c = self.config
+        self.failed_probes[current] = FailedProbe(probe.px, now_s + c.probe_memory_s)
+        why = f"probe of {current} at {probe.px:.1f} px per cell failed: {trouble}"
+        memory = f"not tried again for {c.probe_memory_s:g} s unless the cells grow"
+        px = window.px_per_cell
+        if px is not None and not self._fits(probe.origin, current, px, 1.0):
+            down = self._step_down(current, window, now_s, trouble)
+            return Decision(down.choice, f"{why}; down ({memory})", down.changed)
+        self._hold_off(current, window.span_s, now_s)
+        return Decision(probe.origin, f"{why}; back ({memory})", True)
+
+    def _probe_blocked(self, choice: LinkChoice, px: float, now_s: float) -> bool:
+        """A failed probe of ``choice`` is remembered and the pixels per cell predicted for
+        it now are not ``probe_retry_gain`` above those it failed at."""
+        failed = self.failed_probes.get(choice)
+        return (
+            failed is not None
+            and failed.until_s > now_s
+            and px < failed.px * self.config.probe_retry_gain
+        )
+
     # --- up -----------------------------------------------------------------------------
     def _why_hold(self, current: LinkChoice, window: LinkWindow, recent: LinkWindow) -> str:
         c = self.config
@@ -415,11 +523,60 @@ class LinkPolicy:
         """To the setting that carries most among those whose predicted pixels per cell keep
         ``up_margin`` over what their profile needs, not held off, at most
         ``max_cells_factor`` times the cells; none with more cells while the errors look like
-        the cells' own (``_near_limit``)."""
+        the cells' own (``_near_limit``). If none carries more than ``current``, a probe of the
+        one that does predicted surest (most pixels per cell over what its profile needs)
+        among those predicted at least ``probe_margin`` of it."""
         c = self.config
         px = _low(window)
         assert px is not None
         near = self._near_limit(current, window)
+        bps = current.payload_bps(self.display_hz)
+        options = self._options(current, window, now_s, c.up_margin, near)
+        best = max(options, key=lambda o: o.payload_bps(self.display_hz), default=None)
+        if best is not None and best.payload_bps(self.display_hz) > bps:
+            return Decision(best, f"up from {current}: {px:.1f} px per cell, clean window", True)
+        if near:
+            need = c.min_px[current.profile]
+            return Decision(
+                current,
+                f"BER before FEC {window.ber:.2%} at {px:.1f} px per cell, near the "
+                f"{need:g} {current.profile} needs: smaller cells would add errors",
+                False,
+            )
+        above = [
+            o
+            for o in self._options(current, window, now_s, c.probe_margin, near)
+            if o.payload_bps(self.display_hz) > bps
+        ]
+        # The surest first: the most pixels per cell over what its profile needs.
+        probe = max(
+            above,
+            key=lambda o: (self._ratio(o, current, px), -o.payload_bps(self.display_hz)),
+            default=None,
+        )
+        if probe is None:
+            return Decision(current, self._top_reason(current, px, now_s), False)
+        predicted = px_at(px, current.cells, probe.cells)
+        # It must carry more than the origin does now: its share of frames passing times what
+        # each carries.
+        share = min(window.pass_share, 1.0) * bps / probe.payload_bps(self.display_hz)
+        self.probe = Probe(probe, current, predicted, max(share, c.pass_down))
+        need = c.min_px[probe.profile]
+        return Decision(
+            probe,
+            f"probe from {current}: {predicted:.1f} px per cell predicted, {probe.profile} "
+            f"needs {need:g}",
+            True,
+        )
+
+    def _options(
+        self, current: LinkChoice, window: LinkWindow, now_s: float, margin: float, near: bool
+    ) -> list[LinkChoice]:
+        """The settings a step up may go to whose predicted pixels per cell keep ``margin``
+        over what their profile needs."""
+        c = self.config
+        px = _low(window)
+        assert px is not None
         full = window.readout_share is not None and window.readout_share > c.readout_up
         options = []
         for profile in AUTO_PROFILES if c.allow_fast else ("robust",):
@@ -431,8 +588,9 @@ class LinkPolicy:
                     if (
                         cells > current.cells * c.max_cells_factor
                         or (near and cells > current.cells)
-                        or not self._fits(choice, current, px, c.up_margin)
+                        or not self._fits(choice, current, px, margin)
                         or self.is_held_off(choice, now_s)
+                        or self._probe_blocked(choice, px_at(px, current.cells, cells), now_s)
                         or (
                             profile == "fast"
                             and self._shift(choice, current, window) > c.fast_max_shift
@@ -440,20 +598,7 @@ class LinkPolicy:
                     ):
                         continue
                     options.append(choice)
-        best = max(options, key=lambda o: o.payload_bps(self.display_hz), default=None)
-        if best is None or best.payload_bps(self.display_hz) <= current.payload_bps(
-            self.display_hz
-        ):
-            if near:
-                need = c.min_px[current.profile]
-                return Decision(
-                    current,
-                    f"BER before FEC {window.ber:.2%} at {px:.1f} px per cell, near the "
-                    f"{need:g} {current.profile} needs: smaller cells would add errors",
-                    False,
-                )
-            return Decision(current, self._top_reason(current, px, now_s), False)
-        return Decision(best, f"up from {current}: {px:.1f} px per cell, clean window", True)
+        return options
 
     def _shift(self, choice: LinkChoice, current: LinkChoice, window: LinkWindow) -> float:
         """Cells the marker moves in one frame of ``choice`` at the window's fastest motion."""
@@ -492,6 +637,10 @@ class LinkPolicy:
             f"px per cell: {px:.1f} now, {px_at(px, current.cells, up[0]):.1f} at N = {up[0]}; "
             f"{current.profile} needs {need:.1f}"
         )
+
+    def _ratio(self, choice: LinkChoice, current: LinkChoice, px: float) -> float:
+        """Predicted pixels per cell of ``choice`` over what its profile needs."""
+        return px_at(px, current.cells, choice.cells) / self.config.min_px[choice.profile]
 
     def _fits(self, choice: LinkChoice, current: LinkChoice, px: float, margin: float) -> bool:
         return px_at(px, current.cells, choice.cells) >= self.config.min_px[choice.profile] * margin

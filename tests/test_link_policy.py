@@ -42,11 +42,13 @@ def run(
     readout: float | None = 0.3,
     flow: float = 0.1,
     read: bool = True,
+    reads_down_to: dict[str, float] | None = None,
 ) -> tuple[LinkChoice, list[tuple[str, LinkChoice]], float]:
     """Feed ``seconds`` of reports at 60 Hz, following each decision as a page would; the
     camera sees ``px_at_16`` pixels per cell at N = 16. Returns the settings at the end, each
     change's reason and settings, and the end time. ``passed`` and ``ber``: a share and a BER,
-    or one for each time."""
+    or one for each time. ``reads_down_to``: pixels per cell below which the camera passes no
+    frame of a profile (None: it passes them at any size)."""
     meter = LinkMeter(current, policy.display_hz, t0)
     t, step, reasons = t0, 1 / policy.display_hz, []
     sent, frames = 0.0, 0
@@ -60,6 +62,8 @@ def run(
             share = passed(t) if callable(passed) else passed
             ok = math.floor(frames * share) > math.floor((frames - 1) * share)
             px = None if px_at_16 is None else px_at(px_at_16, 16, current.cells)
+            if reads_down_to and px is not None and px < reads_down_to[current.profile]:
+                ok = False
             b = ber(t) if callable(ber) else ber
             meter.add(FrameSample(t, ok, b if ok else None, px, readout, flow, margin))
         decision = policy.decide(
@@ -79,15 +83,38 @@ def test_it_starts_where_any_camera_reads() -> None:
 
 
 def test_a_near_camera_climbs_to_what_its_pixels_allow_and_stays() -> None:
+    """A camera that reads every frame down to what the profiles need: the climb ends at the
+    largest N whose pixels per cell still allow ``fast``, the last step a probe (the cells
+    within ``up_margin`` of what they need), and no step fails."""
     policy = camera_policy()
-    end, reasons, _ = run(policy, start_choice(60.0), 6.0, px_at_16=20.0)
-    assert reasons and all(r.startswith("up") for r, _ in reasons)
-    # fast needs 7 px and the margin: the largest N whose pixels per cell still allow it.
-    need = policy.config.min_px["fast"] * policy.config.up_margin
+    c = policy.config
+    end, reasons, _ = run(policy, start_choice(60.0), 6.0, px_at_16=20.0, reads_down_to=CAMERA_PX)
+    assert reasons and all(r.startswith(("up", "probe from")) for r, _ in reasons)
     assert end.profile == "fast"
-    assert px_at(20.0, 16, end.cells) >= need
+    assert c.min_px["fast"] <= px_at(20.0, 16, end.cells) < c.min_px["fast"] * c.up_margin
+    assert reasons[-1] == (reasons[-1][0], end) and reasons[-1][0].startswith("probe from")
     bigger = [n for n in CELLS_LADDER if n > end.cells]
-    assert bigger and px_at(20.0, 16, bigger[0]) < need
+    assert bigger and px_at(20.0, 16, bigger[0]) < c.min_px["fast"] * c.probe_margin
+
+
+def test_a_probe_that_fails_goes_back_at_once_and_is_not_tried_again() -> None:
+    """Cells predicted just below what ``fast`` needs with the margin: the step is probed; the
+    camera reads nothing there, so the link goes back at once and stays, the
+    failed probe remembered, until the camera comes closer."""
+    policy = camera_policy()
+    c = policy.config
+    fast40 = LinkChoice("fast", 40)
+    px16 = 19.2  # 7.7 px per cell at N = 40, 6.8 at N = 48: below the 7 fast needs
+    assert c.probe_margin <= px_at(px16, 16, 48) / c.min_px["fast"] < 1.0
+    end, reasons, t = run(policy, fast40, 6.0, px_at_16=px16, reads_down_to=CAMERA_PX)
+    assert [ch for _, ch in reasons] == [LinkChoice("fast", 48), fast40], reasons
+    assert reasons[0][0].startswith("probe from") and "failed" in reasons[1][0]
+    assert end == fast40
+    # Closer by the retry gain, it is tried again (and now read).
+    closer = px16 * c.probe_retry_gain * 1.03
+    assert px_at(closer, 16, 48) >= c.min_px["fast"]
+    end, reasons, _ = run(policy, fast40, 2.0, t0=t, px_at_16=closer, reads_down_to=CAMERA_PX)
+    assert end == LinkChoice("fast", 48) and reasons[0][0].startswith(("probe from", "up"))
 
 
 def test_a_moving_camera_climbs_in_robust_only_and_a_swinging_one_not_at_all() -> None:
@@ -120,19 +147,31 @@ def test_errors_near_the_limit_stop_the_climb_and_errors_far_from_it_do_not() ->
     px16, robust56 = 25.3, LinkChoice("robust", 56)
     assert px_at(px16, 16, 56) < c.min_px["robust"] * c.far_margin
     assert px_at(px16, 16, 64) >= c.min_px["robust"] * c.up_margin
-    clean, _, _ = run(camera_policy(), robust56, 3.0, px_at_16=px16, flow=1.0)
+    clean, _, _ = run(
+        camera_policy(), robust56, 3.0, px_at_16=px16, flow=1.0, reads_down_to=CAMERA_PX
+    )
     assert clean == LinkChoice("robust", 64)
     policy = camera_policy()
     held, reasons, _ = run(policy, robust56, 3.0, px_at_16=px16, flow=1.0, ber=0.006)
     assert held == robust56 and not reasons
     # The same errors at cells far above what they need come from elsewhere: they do not
-    # pin N, and it ends where a clean link ends.
-    end, reasons, _ = run(camera_policy(), start_choice(60.0), 4.0, px_at_16=px16, flow=1.0)
+    # pin N, and it climbs as a clean link climbs. (At N = 64, near the limit, the clean link
+    # then probes N = 72, which this camera does not read; the noisy one does not probe.)
+    end, reasons, _ = run(
+        camera_policy(), start_choice(60.0), 4.0, px_at_16=px16, flow=1.0, reads_down_to=CAMERA_PX
+    )
     noisy, noisy_reasons, _ = run(
-        camera_policy(), start_choice(60.0), 4.0, px_at_16=px16, flow=1.0, ber=0.006
+        camera_policy(),
+        start_choice(60.0),
+        4.0,
+        px_at_16=px16,
+        flow=1.0,
+        ber=0.006,
+        reads_down_to=CAMERA_PX,
     )
     assert noisy == end == LinkChoice("robust", 64)
-    assert [c for _, c in noisy_reasons] == [c for _, c in reasons]
+    climb = [ch for _, ch in noisy_reasons]
+    assert climb[-1] == noisy and [ch for _, ch in reasons][: len(climb)] == climb
 
 
 def test_frames_lost_at_cells_far_above_what_they_need_do_not_stop_the_climb() -> None:
@@ -242,8 +281,9 @@ def test_a_burst_costs_one_notch_and_the_setting_comes_back_after_its_hold_off()
     def passed(t: float) -> float:
         return 0.6 if burst(t) else 1.0
 
-    # 7 px per cell at N = 48, the densest its pixels allow; a hand-held camera.
-    end, reasons, _ = run(policy, good, 4.0, px_at_16=20.0, ber=ber, passed=passed, flow=1.0)
+    # 6.5 px per cell at N = 48, the densest its pixels allow (5.4 at N = 56, too few to
+    # probe); a hand-held camera.
+    end, reasons, _ = run(policy, good, 4.0, px_at_16=18.5, ber=ber, passed=passed, flow=1.0)
     assert [c for _, c in reasons] == [LinkChoice("robust", 40), good]
     assert "BER" in reasons[0][0] and reasons[1][0].startswith("up")
     assert end == good and policy.held_off[good].span_s == c.holdoff_s
@@ -337,6 +377,57 @@ def test_the_evk4_defaults_climb_to_the_smallest_cells_it_reads(
     N = 96 at 4.6. At 1.25 m (12.4) still: ``fast`` N = 32 at 6.5 px, not N = 40 at 5.0."""
     policy = LinkPolicy()
     assert policy.config.min_px == EVK4_MIN_PX
-    end, reasons, _ = run(policy, start_choice(60.0), 4.0, px_at_16=px16, flow=flow)
-    assert reasons and all(r.startswith("up") for r, _ in reasons)
+    end, reasons, _ = run(
+        policy, start_choice(60.0), 4.0, px_at_16=px16, flow=flow, reads_down_to=EVK4_MIN_PX
+    )
+    assert reasons and all(r.startswith(("up", "probe")) for r, _ in reasons)
     assert end == top
+
+
+def _probe_at_robust_80(policy: LinkPolicy) -> float:
+    """Robust N = 72 read cleanly at 5.5 px per cell, a hand's swing at its fewest (5.1
+    predicted at N = 80, under the 5.15 a step asks): the policy probes N = 80. Returns the
+    time it did."""
+    robust72, meter = LinkChoice("robust", 72), LinkMeter(LinkChoice("robust", 72), 60.0, 0.0)
+    rate = 60.0 * get_profile("robust").data_share
+    t = 0.0
+    while t < 0.6:
+        t += 1 / rate
+        meter.add(FrameSample(t, True, 0.0, 5.52, 0.9, 0.4, None))
+    probe = policy.decide(robust72, meter.window(t), meter.window(t, 0.3), t)
+    assert probe.changed and probe.choice == LinkChoice("robust", 80), probe
+    assert probe.reason.startswith("probe from robust N = 72")
+    return t
+
+
+@pytest.mark.parametrize(("after_lock", "kept"), [(1.0, True), (0.9, True), (0.7, False)])
+def test_a_probe_is_judged_from_its_lock_and_kept_if_it_carries_more(
+    after_lock: float, kept: bool
+) -> None:
+    """The probe's first two frames fail (a new lock's first frames fail at any density);
+    from its first passed frame on it is kept if its share passing, times the 24% more each of
+    its frames carries, beats the 100% its origin passed."""
+    policy = LinkPolicy()
+    t0 = _probe_at_robust_80(policy)
+    robust80 = LinkChoice("robust", 80)
+    meter = LinkMeter(robust80, 60.0, t0)
+    rate = 60.0 * get_profile("robust").data_share
+    t, frames, decisions = t0 + 0.1, 0, []
+    while t < t0 + 1.5:
+        t += 1 / rate
+        frames += 1
+        ok = frames > 2 and math.floor((frames - 2) * after_lock) > math.floor(
+            (frames - 3) * after_lock
+        )
+        meter.add(FrameSample(t, ok, 0.002 if ok else None, 5.3, 0.9, 0.4, None))
+        decision = policy.decide(robust80, meter.window(t), meter.window(t, 0.3), t)
+        decisions.append(decision)
+        if decision.changed:
+            break
+    if kept:
+        assert not any(d.changed for d in decisions)
+        assert policy.probe is None and not decisions[-1].reason.startswith("probing")
+    else:
+        assert decisions[-1].changed and decisions[-1].choice == LinkChoice("robust", 72)
+        assert "failed" in decisions[-1].reason and robust80 in policy.failed_probes
+        assert t - t0 < 0.8  # at once: within a judgement's frames after the lock
