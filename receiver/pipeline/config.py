@@ -229,9 +229,9 @@ class DecoderParams:
     """A cell this share of the contrast away from the threshold has full confidence: wide, so
     that the confidences rank the cells for the Reed-Solomon decoder's extra erasures
     (``FrameCodec.decode``). The framed profiles erase outright only below 1/32 of it
-    (``LinkProfile.erasure_below``), a 64th of the contrast: an erasure pays only when a third
-    of the erased bytes are wrong, and under motion a cell an eighth of the contrast away is
-    still mostly right."""
+    (``LinkProfile.erasure_below``), a 64th of the contrast, and only where a codeword's bits
+    alone fail: an erasure pays only when more than half of the erased bytes are wrong, and
+    under motion a cell an eighth of the contrast away is still mostly right."""
     min_edge_agreement: float = 0.5
     """A lock's first proof also asks each swept outer edge of the ring to have fired with the
     motion's polarity at least this well in the tracker's latest window (``Track.sides_agree``):
