@@ -232,7 +232,7 @@ class Receiver:
         # Allocated once (with the camera's undistortion table), reset at every lock.
         self._triage = EventTriage(
             cam.undistort_table,
-            config.refresh_us / 2,
+            config.decoder.fast_on_gap_us if config.data_every == 1 else config.refresh_us / 2,
             config.data_every == 1,
             still_share=config.tracker.still_near_share,
             still_every=config.tracker.still_lookup_every,
