@@ -41,7 +41,7 @@ from eventocc.occ.profiles import LinkProfile
 
 OVERHEAD = FrameHeader.SIZE + FrameHeader.CRC_SIZE
 ERASURE_MARGIN = 2
-"""Parity bytes a retry with extra erasures keeps back for detection (``_erase_least_sure``)."""
+"""Parity bytes a ranked retry keeps back for detection (``FrameCodec._erase_unsure``)."""
 
 
 class FrameCodec:
