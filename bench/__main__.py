@@ -2,7 +2,8 @@
 
 ``python -m bench`` (full: days on this machine), ``python -m bench --quick`` (minutes on 2
 cores), ``--scale standard`` (the paper's sensor; its streaming part takes about an hour, its
-hand-held parts hours), or ``--scale tiny`` (seconds, for tests). Results go to docs/
+hand-held parts hours), ``--scale still60 --only streaming`` (the paper's sensor, each
+profile at 60 Hz and 250 lux), or ``--scale tiny`` (seconds, for tests). Results go to docs/
 (``--out`` to change): plots, raw results as JSON, the sections of BENCHMARKS.md, and
 RESULTS.md. The clips of an experiment are independent and run ``--jobs`` at a time, with the
 same results for any number of jobs.
@@ -165,6 +166,18 @@ PLANS = {
             *((p, 60.0, _LUX) for p in ("paper", "robust", "fast")),
             *((p, hz, (250.0,)) for hz in _RATES[1:] for p in ("robust", "fast")),
         ),
+        (16, 32, 48, 64, 80, 96),
+        1,
+        2.0,
+        5,
+        5.0,
+        (0.5, 1.0, 2.0, 3.0, 4.0, 6.0),
+        2.0,
+        2.0,
+    ),
+    "still60": Plan(  # ``standard``'s still camera at 60 Hz and 250 lux only
+        None,
+        tuple((p, 60.0, (250.0,)) for p in ("paper", "robust", "fast")),
         (16, 32, 48, 64, 80, 96),
         1,
         2.0,

@@ -4,8 +4,9 @@ The paper's still set-up (1.25 m, the marker facing the camera, 250 lux, 1280x72
 marker sized for ``P`` pixels per cell and the largest payload side N whose white ring fits
 ``FIT_SHARE`` of the view. Each clip's accepted frames are decoded again offline three ways, to
 show what the reader's confidences are worth: ``hard`` (no confidences: errors only),
-``threshold`` (bytes with a cell below ``erasure_below`` erased) and ``soft`` (the receiver's
-own: those erasures, then retries erasing the least confident bytes).
+``threshold`` (then, in a codeword the bits alone do not decode, the bytes with a cell below
+``erasure_below`` erased) and ``soft`` (the receiver's own: then retries erasing the least
+confident bytes).
 
 Run: ``NUMBA_NUM_THREADS=1 nice .venv/bin/python -m bench.realistic --jobs 1``
 (``--px 7 13 --profiles robust --rates 60`` for a subset).
@@ -397,10 +398,10 @@ def report(points: list[Point]) -> str:
         "code and CRC passed per second from the first frame read to the last (what a long "
         "message gets, as `bench.receiver` counts it); `paper` (no check), the message's bits "
         "over the time from the first frame read to the frame completing it. Each clip's "
-        "reads are decoded three ways (hard: errors only; threshold: "
-        "plus the outright erasures; soft: plus retries erasing the least confident bytes, "
-        "the receiver's own). Events/s: what the pixels made, and what the camera delivered "
-        "after the sensor's readout, its rate controller and the USB link.",
+        "reads are decoded three ways (hard: errors only; threshold: then, in a codeword the "
+        "bits alone do not decode, the outright erasures; soft: then retries erasing the least "
+        "confident bytes, the receiver's own). Events/s: what the pixels made, and what the "
+        "camera delivered after the sensor's readout, its rate controller and the USB link.",
         "",
         "![BER and goodput against pixels per cell](realistic.png)",
         "",

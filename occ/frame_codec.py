@@ -41,7 +41,7 @@ from eventocc.occ.profiles import LinkProfile
 
 OVERHEAD = FrameHeader.SIZE + FrameHeader.CRC_SIZE
 ERASURE_MARGIN = 2
-"""Parity bytes a retry with extra erasures keeps back for detection (``_erase_least_sure``)."""
+"""Parity bytes a ranked retry keeps back for detection (``FrameCodec._erase_unsure``)."""
 
 
 class FrameCodec:
@@ -99,20 +99,21 @@ class FrameCodec:
         """Header and symbol of a frame read from the cells, or None if it cannot be trusted;
         ``self.corrected`` then marks the cells the code corrected (None if it failed).
 
-        With ``confidence``, bytes with a cell below ``profile.erasure_below`` are erasures;
-        a codeword that still fails is decoded again with more of its least confident bytes
-        erased (``profile.erasure_rounds``): generalised minimum-distance decoding, which an
-        erasure pays for when at least one in three of the erased bytes was wrong."""
+        Every codeword is first decoded from its bits alone. With ``confidence``, one that
+        fails is decoded again with its bytes that have a cell below ``profile.erasure_below``
+        erased, then with more of its least confident bytes erased
+        (``profile.erasure_rounds``): generalised minimum-distance decoding. Erasing a byte
+        pays only when it was wrong (``2 errors + erasures <= nsym``: a wrong byte erased
+        saves one, a right one costs one), and a reader's unsure cells are often right, so
+        erasures are only ever tried where the bits alone failed: a frame that decodes
+        without confidences decodes the same with them."""
         self.corrected = None
         received = cells_to_bytes(np.asarray(bits, dtype=np.uint8) ^ self.mask, self.coded_bytes)
         coded = deinterleave(received, self.codewords)
-        erasures = None
-        if confidence is not None:
-            sureness = deinterleave(byte_min(confidence, self.coded_bytes), self.codewords)
-            erasures = sureness < self.profile.erasure_below
-        codewords, ok = self.rs.correct(coded, erasures)
+        codewords, ok = self.rs.correct(coded)
         if not ok.all() and confidence is not None:
-            codewords, ok = self._erase_least_sure(coded, sureness, erasures, codewords, ok)
+            sureness = deinterleave(byte_min(confidence, self.coded_bytes), self.codewords)
+            codewords, ok = self._erase_unsure(coded, sureness, codewords, ok)
         if not ok.all():
             return None
         data = codewords[:, : self.rs.k].reshape(-1)
@@ -131,33 +132,33 @@ class FrameCodec:
         flips[: self.coded_bytes] = received ^ corrected
         return bytes_to_cells(flips, self.cells).astype(bool)
 
-    def _erase_least_sure(
-        self,
-        coded: np.ndarray,
-        sureness: np.ndarray,
-        erasures: np.ndarray,
-        codewords: np.ndarray,
-        ok: np.ndarray,
+    def _erase_unsure(
+        self, coded: np.ndarray, sureness: np.ndarray, codewords: np.ndarray, ok: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Retry the failed codewords with the ``k`` least sure bytes of each erased, for
-        ``k`` in even steps up to ``nsym - 2 * ERASURE_MARGIN``, giving whole corrected
-        codewords as ``ReedSolomon.correct`` does; each retry keeps
-        ``ERASURE_MARGIN`` parity bytes back for detection (``ReedSolomon.correct``), so a
-        word the erasures push next to the wrong codeword is refused rather than "corrected"."""
+        """Retry the failed codewords with erasures: first their bytes below
+        ``profile.erasure_below``, then also their ``k`` least sure bytes, for ``k`` in even
+        steps up to ``nsym - 2 * ERASURE_MARGIN``, giving whole corrected codewords as
+        ``ReedSolomon.correct`` does. The ranked retries keep ``ERASURE_MARGIN`` parity bytes
+        back for detection (``ReedSolomon.correct``), so a word the erasures push next to the
+        wrong codeword is refused rather than "corrected"."""
+        codewords, ok = codewords.copy(), ok.copy()
+        erasures = sureness < self.profile.erasure_below
         rounds = self.profile.erasure_rounds
         most = self.rs.nsym - 2 * ERASURE_MARGIN
-        if rounds < 1 or most < 1:
-            return codewords, ok
-        order = np.argsort(sureness, axis=1, kind="stable")
-        rank = np.empty_like(order)
-        np.put_along_axis(rank, order, np.arange(order.shape[1])[None, :], axis=1)
-        codewords, ok = codewords.copy(), ok.copy()
-        for r in range(1, rounds + 1):
-            failed = np.flatnonzero(~ok)
+        tries = [(erasures, 0)]
+        if rounds >= 1 and most >= 1:
+            order = np.argsort(sureness, axis=1, kind="stable")
+            rank = np.empty_like(order)
+            np.put_along_axis(rank, order, np.arange(order.shape[1])[None, :], axis=1)
+            tries += [
+                (erasures | (rank < round(most * r / rounds)), ERASURE_MARGIN)
+                for r in range(1, rounds + 1)
+            ]
+        for erase, margin in tries:
+            failed = np.flatnonzero(~ok & erase.any(axis=1))
             if not len(failed):
-                break
-            erase = erasures[failed] | (rank[failed] < round(most * r / rounds))
-            got, fixed = self.rs.correct(coded[failed], erase, margin=ERASURE_MARGIN)
+                continue
+            got, fixed = self.rs.correct(coded[failed], erase[failed], margin=margin)
             codewords[failed[fixed]] = got[fixed]
             ok[failed[fixed]] = True
         return codewords, ok

@@ -35,9 +35,9 @@ class LinkProfile:
     """Share of each Reed-Solomon codeword spent on parity (framed profiles); 0.25 corrects
     about 12% wrong bytes, i.e. ~1% independent bit errors, the paper's dynamic BER."""
     erasure_below: float = 1 / 32
-    """A byte with any cell of confidence below this becomes an RS erasure (the receiver's
-    confidence is a cell's distance from its threshold over half the contrast, so this is a
-    64th of the contrast)."""
+    """A byte with any cell of confidence below this becomes an RS erasure in a codeword its
+    bits alone do not decode (the receiver's confidence is a cell's distance from its
+    threshold over half the contrast, so this is a 64th of the contrast)."""
     erasure_rounds: int = 3
     """Retries of a failed Reed-Solomon codeword, each with more of its least confident bytes
     erased (``FrameCodec.decode``); 0: erasures from ``erasure_below`` only."""

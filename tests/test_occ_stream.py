@@ -393,3 +393,18 @@ def test_decoder_marks_the_cells_its_code_corrected(profile: str) -> None:
     dec.push(np.random.default_rng(2).integers(0, 2, (16, 16), dtype=np.uint8))
     assert dec.corrected is None, "a frame that did not decode has no corrections"
     assert StreamDecoder(profile="paper", cells=16, message_size=10).corrected is None
+
+
+def test_unsure_right_bytes_never_cost_a_frame_the_bits_alone_decode() -> None:
+    # As many wrong bytes as the parity corrects as errors, plus right bytes with a cell read
+    # at zero confidence: erasing those would need 2 errors + erasures > nsym.
+    nsym = FrameCodec(get_profile("robust"), 32).rs.nsym
+    codec, bits, confidence, symbol = _frame_with_unsure_errors(32, nsym // 2)
+    confidence[confidence < 1] = 1.0  # the wrong bytes look sure
+    sure_bytes = (nsym // 2 + np.arange(4)) * codec.codewords  # right bytes, codeword 0
+    confidence.reshape(-1)[8 * sure_bytes + 3] = 0.0
+    assert codec.decode(bits) is not None
+    header, got = codec.decode(bits, confidence)
+    assert got == symbol and header.esi == 3
+    threshold = FrameCodec(replace(get_profile("robust"), erasure_rounds=0), 32)
+    assert threshold.decode(bits, confidence) is not None

@@ -90,6 +90,14 @@ def test_static_robust_locks_fast_and_recovers_the_message_with_zero_ber():
     assert err.max() < 0.01  # 1 cm from PnP on the detected locator corners at 0.6 m
 
 
+def test_a_framed_frame_that_passes_its_check_counts_whatever_its_locator_reads():
+    # No inner locator reads this clearly: only the frames' code and CRC can vouch for them.
+    told = DecoderParams(min_locator_score=1.01)
+    log, _ = _run(_scene("robust", STATIC, "gen4-indoor"), 1.6, decoder=told)
+    assert [m.message.data for m in log.messages] == [MESSAGE]
+    assert log.receiver.stats.losses == 0
+
+
 def test_a_gap_in_the_event_stream_is_not_a_tracking_loss():
     # A camera that dropped 0.3 s of packets: its frames show nothing, not a vanished marker.
     log, _ = _run(_scene("robust", STATIC, "gen4-indoor"), 1.6, drop_us=(400_000, 700_000))

@@ -49,7 +49,7 @@ def _reference_bursts(
 ) -> set[tuple]:
     """(x, y, polarity index, start) of each pixel's latest burst and of its first burst from
     each of the ``marks`` on, event by event: a burst ends at an event of the other polarity,
-    and with one polarity kept also after a gap of ``GAP_US``."""
+    and an ON burst (with one polarity kept, the only one) also after a gap of ``GAP_US``."""
     latest: dict[tuple, int] = {}
     firsts: list[dict[tuple, int]] = [{} for _ in marks]
     last: dict[tuple, int] = {}
@@ -58,7 +58,7 @@ def _reference_bursts(
         last.pop((key[0], key[1], 1 - key[2]), None)
         if key[2] >= polarities:
             continue
-        if key not in last or (polarities == 1 and t - last[key] > GAP_US):
+        if key not in last or (key[2] == 0 and t - last[key] > GAP_US):
             latest[key] = int(t)
             for mark, first in zip(marks, firsts, strict=True):
                 if t >= mark and key not in first:
@@ -106,10 +106,11 @@ def test_triage_keeps_each_pixels_latest_and_first_marked_burst_starts(
     assert len(got) == len(set(got)) and set(got) == expected
 
 
-def test_with_both_polarities_only_a_reversal_starts_a_burst():
+def test_with_both_polarities_a_reversal_or_a_late_on_event_starts_a_burst():
     """A toggling cell's pixels reverse polarity at each switch. A lone OFF event long after the
-    pixel went dark (its slow settling, a redraw of the same level) is no switch, while the same
-    pixel turning on again is one."""
+    pixel went dark (its slow settling) is no switch, while the same pixel turning on again is
+    one, and so is its own switch on after a neighbour's light made it fire ON a refresh
+    before (no OFF event between)."""
     triage = EventTriage(DISTORTED.undistort_table, GAP_US, True)
     triage.reset(0)
     t = [0, 40, 80, 5_000, 9_000, 9_050]  # a switch off, a lone OFF, a switch on
@@ -118,6 +119,11 @@ def test_with_both_polarities_only_a_reversal_starts_a_burst():
     assert _as_tuples(late) == [(3, 2, 0, 9_000)]
     first = triage.bursts(0, 1_000, (0, WIDTH, 0, HEIGHT))
     assert _as_tuples(first) == [(3, 2, 1, 0)]
+    # A neighbour's light (ON at 20,000), then the pixel's own switch (ON at 30,000).
+    t = [20_000, 20_030, 20_060, 30_000, 30_040]
+    triage(make_events(t, [3] * 5, [2] * 5, [1] * 5))
+    own = triage.bursts(25_000, 40_000, (0, WIDTH, 0, HEIGHT))
+    assert _as_tuples(own) == [(3, 2, 0, 30_000)]
 
 
 @pytest.mark.parametrize("stride", [1, 2, 3, 4])

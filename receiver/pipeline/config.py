@@ -229,9 +229,9 @@ class DecoderParams:
     """A cell this share of the contrast away from the threshold has full confidence: wide, so
     that the confidences rank the cells for the Reed-Solomon decoder's extra erasures
     (``FrameCodec.decode``). The framed profiles erase outright only below 1/32 of it
-    (``LinkProfile.erasure_below``), a 64th of the contrast: an erasure pays only when a third
-    of the erased bytes are wrong, and under motion a cell an eighth of the contrast away is
-    still mostly right."""
+    (``LinkProfile.erasure_below``), a 64th of the contrast, and only where a codeword's bits
+    alone fail: an erasure pays only when more than half of the erased bytes are wrong, and
+    under motion a cell an eighth of the contrast away is still mostly right."""
     min_edge_agreement: float = 0.5
     """A lock's first proof also asks each swept outer edge of the ring to have fired with the
     motion's polarity at least this well in the tracker's latest window (``Track.sides_agree``):
@@ -258,6 +258,15 @@ class DecoderParams:
     sensor's; below it the stride shrinks in proportion (``decoder.read_stride``). A readout
     that keeps a quarter of the events leaves 1-2, and each pixel then misses bursts or times
     them by a late event."""
+    fast_on_gap_us: int = 4000
+    """``fast``: an ON event this long after its pixel's last ON event starts a new burst even
+    with no OFF event between (``triage._burst``). A cell dark for a few refreshes fires ON when
+    a neighbour lights up (the lens spreads a few per cent of its light onto it, a large step in
+    the log of a dark pixel's light) and no OFF event follows while that neighbour stays lit,
+    so its own switch a refresh or more later would only continue that burst and go unread.
+    Longer than the gaps between the last ON events of a pixel settling at white (its light
+    approaches white with the display's rise constant, ~2.5 ms on an LCD), shorter than a
+    240 Hz refresh."""
     late_mark_px_per_cell: float | None = 12.0
     """Cells at least this wide (pixels, at the lock) are also read from each pixel's first burst
     after the middle of the frame's window (``EventTriage.marks_us``). The scan-out switches the

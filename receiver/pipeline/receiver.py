@@ -241,7 +241,7 @@ class Receiver:
         # Allocated once (with the camera's undistortion table), reset at every lock.
         self._triage = EventTriage(
             cam.undistort_table,
-            config.refresh_us / 2,
+            config.decoder.fast_on_gap_us if config.data_every == 1 else config.refresh_us / 2,
             config.data_every == 1,
             still_share=config.tracker.still_near_share,
             still_every=config.tracker.still_lookup_every,
@@ -624,7 +624,14 @@ class Receiver:
                 out.append(FrameOutput(read, False))
                 out += self._lose(now, "the inner locator's 'L' does not read at the tracked pose")
                 continue
-            if not seen:
+            verified, messages = self.stream.verified_bits, []
+            if seen or framed:
+                # A framed frame's code and CRC vouch for it whatever its locator reads: a
+                # small cell's dark locator cells fire from their lit neighbours' light.
+                with self._cpu("stream"):
+                    messages = self.stream.push(read.bits, read.confidence)
+            passed = self.stream.verified_bits - verified
+            if not (seen or passed):
                 out.append(FrameOutput(read, False))
                 track.missed += 1
                 if track.missed >= q.lost_after_frames:
@@ -632,12 +639,7 @@ class Receiver:
                 continue
             track.missed = 0
             self.stats.frames_seen += 1
-            verified = self.stream.verified_bits
-            with self._cpu("stream"):
-                messages = self.stream.push(read.bits, read.confidence)
-            frame = FrameOutput(
-                read, True, self.stream.verified_bits - verified, self.stream.corrected
-            )
+            frame = FrameOutput(read, True, passed, self.stream.corrected)
             pose = self.pose_at(np.array([read.t_us]))[0]
             self.cell_px = cell_side_px(self.config, pose)
             if frame.payload_bits:

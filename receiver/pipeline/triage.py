@@ -14,8 +14,9 @@ neighbour before its own switch, and again after it. So the first burst is kept 
 on (``marks_us``): the frame window's start, for the rows that switch early, and a later one
 for the rest, where cells are large enough (``DecoderParams.late_mark_px_per_cell``).
 
-A burst is a run of same-polarity events with no gap longer than ``gap_us`` and no event of the
-other polarity: a cell switching fires its pixels several times within the display's response,
+A burst is a run of same-polarity events with no gap longer than ``gap_us`` (with both
+polarities kept, an OFF burst's gaps are unbounded: ``_burst``) and no event of the other
+polarity: a cell switching fires its pixels several times within the display's response,
 and the same pixel cannot switch the same way again for two refreshes (or a data frame and a
 blank one), unless motion sweeps an edge's image over it. At 6 px/ms the scan-out spreads a
 frame's bursts over ~10 ms, in which a white cell's pixel is often relit once or twice by its
@@ -70,9 +71,11 @@ def _burst(pixels, e, at, epoch, gap_us, mark, mark2):
     start from ``mark`` on and from ``mark2`` on. An event of the other polarity ends a burst: a
     moving edge darkens and relights a pixel well within ``gap_us``.
 
-    With both polarities (``fast``), only a change of polarity starts a burst: each switch of a
-    toggling cell reverses its pixels' polarity, while an event of the same polarity long after
-    the last (a pixel's slow settling towards black, a redraw of the same level) is no switch.
+    With both polarities (``fast``), a change of polarity starts a burst: each switch of a
+    toggling cell reverses its pixels' polarity, while an OFF event long after the last (a
+    pixel's slow settling towards black) is no switch. An ON event also starts one after a gap
+    of ``gap_us`` (``DecoderParams.fast_on_gap_us``): ON events bunch at a switch, and a dark
+    pixel that a lit neighbour's light made fire ON gets no OFF event before its own switch.
     (The two surfaces' cases are written apart, each with its polarity a constant where it can
     be: an index throughout makes the pass slower.)"""
     ti = np.int32(e.t - epoch)
@@ -81,10 +84,12 @@ def _burst(pixels, e, at, epoch, gap_us, mark, mark2):
             _note(pixels, at, 0, ti, ti - pixels[at, 0, 1] > gap_us, mark, mark2)
         else:
             pixels[at, 0, 1] = _NEVER
+    elif e.p > 0:
+        pixels[at, 1, 1] = _NEVER
+        _note(pixels, at, 0, ti, ti - pixels[at, 0, 1] > gap_us, mark, mark2)
     else:
-        d = 0 if e.p > 0 else 1
-        pixels[at, 1 - d, 1] = _NEVER
-        _note(pixels, at, d, ti, pixels[at, d, 1] == _NEVER, mark, mark2)
+        pixels[at, 0, 1] = _NEVER
+        _note(pixels, at, 1, ti, pixels[at, 1, 1] == _NEVER, mark, mark2)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
