@@ -803,18 +803,19 @@ def _capture_ring(
     and its polarity agreements (overall, the worst side's). Captures start at scaled copies
     of the locator's quadrilateral (any rotation: the ring is square), and at the same a ring
     width smaller: the blob and the fitted square often take the ring's inner edge for the
-    locator's outline. Each of those two also starts a ring width off along either side's
-    direction: a burst's fit lies a cell or two off under motion, and a capture from there
-    settles on the edges of the rings beside the right ones."""
+    locator's outline. The quadrilateral itself and the one a ring width smaller also start a
+    ring width off along either side's direction: a burst's fit lies a cell or two off under
+    motion, and a capture from there settles on the edges of the rings beside the right ones."""
     xu, yu = events["xu"], events["yu"]
     geo = config.geometry
     smaller = geo.tracked_side / (geo.tracked_side + 2 * geo.ring)
     centre = quad.mean(axis=0)
-    scaled = [centre + s * (quad - centre) for s in _CAPTURE_SCALES]
-    scaled += [centre + smaller * s * (quad - centre) for s in _CAPTURE_SCALES]
+    scales = _CAPTURE_SCALES + tuple(smaller * s for s in _CAPTURE_SCALES)
+    starts = [centre + scale * (quad - centre) for scale in scales]
     sides = np.array([quad[1] - quad[0], quad[3] - quad[0]]) * geo.ring / geo.locator_side
-    steps = np.concatenate([sides, -sides])
-    starts = scaled + [start + step for start in (scaled[0], scaled[3]) for step in steps]
+    for scale in (1.0, smaller):
+        start = centre + scale * (quad - centre)
+        starts += [start + step for step in (*sides, *-sides)]
     best, best_key = None, None
     for start in starts:
         tracker = EdgeTracker(config, _solve_pnp(start, config), t_us)
