@@ -364,7 +364,14 @@ def fit_square(image: np.ndarray, quad: np.ndarray, locator_side: int, ring: int
     is the most lit and whose outer band (the dark ring around the locator) the least, in the
     blurred ``image``; a grid of shifts, scales and turns, then finer ones down to
     ``_SQUARE_FINEST_PX``."""
-    lit, inner, outer = _bands(image, locator_side, ring)
+    return _fit_square(_bands(image, locator_side, ring), quad, locator_side)
+
+
+def _fit_square(
+    bands: tuple[np.ndarray, np.ndarray, np.ndarray], quad: np.ndarray, locator_side: int
+) -> np.ndarray:
+    """``fit_square`` on the blurred image and its bands (``_bands``)."""
+    lit, inner, outer = bands
     sides = np.roll(quad, -1, axis=0) - quad
     side = np.linalg.norm(sides, axis=1).mean()
     cell = side / locator_side
@@ -441,8 +448,9 @@ def locator_fits(
     quadrilateral fitted with each corner free (from the square and from ``blob``) when that
     fits the locator's bands clearly better (``QUAD_MARGIN``). A marker seen obliquely images
     its locator as a skewed quadrilateral that no square fits within a ring width."""
-    square = fit_square(image, blob, locator_side, ring)
-    lit, inner, outer = _bands(image, locator_side, ring)
+    bands = _bands(image, locator_side, ring)
+    square = _fit_square(bands, blob, locator_side)
+    lit, inner, outer = bands
     fits = [_fit_quad(lit, start, locator_side, inner, outer) for start in (square, blob)]
     quad, contrast = max(fits, key=lambda fit: fit[1])
     if contrast > QUAD_MARGIN * _quad_contrast(lit, square[None], inner, outer)[0]:
