@@ -19,7 +19,7 @@ from eventocc.receiver.events import make_events
 from eventocc.receiver.pipeline.buffer import to_columns
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.locate import Box, events_between, outline, quadrilateral
-from eventocc.receiver.pipeline.pose import _residuals, project_ideal
+from eventocc.receiver.pipeline.pose import DARK_SIDE, _residuals, project_ideal
 from eventocc.receiver.pipeline.tracker import (
     EdgeTracker,
     _assign,
@@ -367,8 +367,9 @@ def test_pose_normal_equations_match_a_numeric_jacobian():
     huber = 1.0
 
     def signed(step: np.ndarray) -> np.ndarray:
-        """Signed point-line distances after the update exp(w) R, exp(w) t + v."""
-        w, v = step[:3], step[3:]
+        """Signed point-line distances after the update exp(w) R, exp(w) t + v, each line moved
+        ``dark + step[6]`` px to its dark side."""
+        w, v = step[:3], step[3:6]
         theta = np.linalg.norm(w)
         W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
         dR = np.eye(3) + (np.sin(theta) / theta * W if theta else W)
@@ -380,13 +381,14 @@ def test_pose_normal_equations_match_a_numeric_jacobian():
         a, b = px[edge, 0], px[edge, 1]
         d = b - a
         cross = d[:, 0] * (pts[:, 1] - a[:, 1]) - d[:, 1] * (pts[:, 0] - a[:, 0])
-        return cross / np.linalg.norm(d, axis=1)
+        return cross / np.linalg.norm(d, axis=1) - DARK_SIDE[edge] * (dark + step[6])
 
-    r = signed(np.zeros(6))
+    dark = 0.4
+    r = signed(np.zeros(7))
     eps = 1e-7
-    J = np.stack([(signed(eps * np.eye(6)[j]) - r) / eps for j in range(6)], axis=1)
+    J = np.stack([(signed(eps * np.eye(7)[j]) - r) / eps for j in range(7)], axis=1)
     wgt = np.where(np.abs(r) <= huber, 1.0, huber / np.abs(r))
-    _, H, g = _residuals(R, t, k, pts, edge.astype(np.int64), ends, huber)
+    _, H, g = _residuals(R, t, k, pts, edge.astype(np.int64), ends, huber, dark)
     assert np.allclose(H, H.T)
     assert np.allclose(H, J.T @ (wgt[:, None] * J), rtol=1e-4, atol=1e-3 * np.abs(H).max())
     assert np.allclose(g, J.T @ (wgt * r), rtol=1e-4, atol=1e-3 * np.abs(g).max())
@@ -402,9 +404,9 @@ def test_pose_normal_equations_do_not_depend_on_the_points_order():
     k = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
     edge = np.sort(rng.integers(0, 8, 300))
     pts = rng.uniform(0, 346, (300, 2))  # far off the lines too: Huber's linear part
-    grouped = _residuals(R, t, k, pts, edge, ends, 1.0)
+    grouped = _residuals(R, t, k, pts, edge, ends, 1.0, 0.5)
     order = rng.permutation(300)
-    shuffled = _residuals(R, t, k, pts[order], edge[order], ends, 1.0)
+    shuffled = _residuals(R, t, k, pts[order], edge[order], ends, 1.0, 0.5)
     for a, b in zip(grouped, shuffled, strict=True):
         assert np.allclose(a, b, rtol=1e-12, atol=0.0)
 

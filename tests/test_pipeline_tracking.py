@@ -292,7 +292,7 @@ def test_capture_that_ends_behind_the_camera_keeps_the_pose(monkeypatch):
 
     def last_pass_behind(T, *args):
         passes.append(T)
-        return (behind if len(passes) == len(tracker_module._CAPTURE_GATES) else T), 0.0
+        return (behind if len(passes) == len(tracker_module._CAPTURE_GATES) else T), 0.0, 0.0, 0.0
 
     monkeypatch.setattr(tracker_module, "refine_pose", last_pass_behind)
     x, y, _ = _edge_events(truth, 0, n_per_edge=80)

@@ -37,7 +37,7 @@ from eventocc.receiver.pipeline.detector import (
 from eventocc.receiver.pipeline.filters import EventFilter
 from eventocc.receiver.pipeline.locate import Box
 from eventocc.receiver.pipeline.metrics import pose_errors, umeyama
-from eventocc.receiver.pipeline.pose import PoseHistory, project_ideal, refine_pose
+from eventocc.receiver.pipeline.pose import DARK_SIDE, PoseHistory, project_ideal, refine_pose
 from eventocc.receiver.pipeline.report import FrameTruth
 from eventocc.receiver.pipeline.triage import EventTriage
 from eventocc.receiver.poses import make_pose
@@ -124,9 +124,37 @@ def test_refine_pose_recovers_a_perturbed_pose_from_edge_points():
     T0 = T_true @ make_pose(
         Rotation.from_euler("xyz", [1, -1, 2], degrees=True).as_matrix(), [0.01, 0.005, 0.02]
     )
-    T, cost = refine_pose(T0, K, pts, edge, edges, 1.0, 20)
+    T, cost, dark, _ = refine_pose(T0, K, pts, edge, edges, 1.0, 20)
     assert cost < 1e-6
+    assert abs(dark) < 1e-4
     assert np.allclose(T[:3, 3], T_true[:3, 3], atol=1e-4)
+
+
+def test_refine_pose_fits_the_events_offset_to_the_dark_side_of_unevenly_firing_edges():
+    """A log sensor's events of a moving edge lie on its dark side. When the edges fire unevenly
+    (here the right side of the ring ten times as much as the others) that offset tilts a pose
+    fitted to the edges themselves; fitted with the pose, it leaves the pose where it is."""
+    geo = MarkerGeometry(16)
+    edges = geo.tracked_edges(SIZE)
+    T_true = _looking_at_marker() @ make_pose(
+        Rotation.from_euler("xyz", [5, -8, 3], degrees=True).as_matrix(), [0.01, -0.02, 0.0]
+    )
+    counts = np.array([8, 80, 8, 8, 8, 80, 8, 8])
+    edge = np.repeat(np.arange(8), counts)
+    s = np.concatenate([np.linspace(0.05, 0.95, n) for n in counts])
+    world = edges[edge, 0] + s[:, None] * (edges[edge, 1] - edges[edge, 0])
+    pts = project_ideal(T_true, K, world)
+    a, b = project_ideal(T_true, K, edges[edge, 0]), project_ideal(T_true, K, edges[edge, 1])
+    d = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    right = np.stack([-d[:, 1], d[:, 0]], axis=1)  # the sign of positive distances
+    pts += 0.8 * DARK_SIDE[edge, None] * right
+
+    T, _, dark, _ = refine_pose(T_true, K, pts, edge, edges, 1.0, 30)
+    assert dark == pytest.approx(0.8, abs=0.01)
+    assert np.allclose(T[:3, 3], T_true[:3, 3], atol=1e-4)
+    outer = edge < 4  # one boundary alone: the offset is the distance's, and stays as given
+    _, _, kept, _ = refine_pose(T_true, K, pts[outer], edge[outer], edges, 1.0, 30, 0.3)
+    assert kept == 0.3
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-8, 1e-6, 1e-3, 0.5, 3.0, np.pi - 1e-2, np.pi - 1e-5])

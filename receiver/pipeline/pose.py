@@ -8,6 +8,8 @@ table before they reach the tracker, so the model is the pinhole ``K`` alone.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import cv2
 import numba
 import numpy as np
@@ -171,10 +173,23 @@ def _project_with_jacobian(P, R, t, k, uv, J):
     J[1, 3], J[1, 4], J[1, 5] = 0.0, fy, gy
 
 
+DARK_SIDE = np.array([-1.0] * 4 + [1.0] * 4)
+"""Which way each tracked edge's dark side lies, in the sign of ``_residuals``' distances (positive
+to the right of an edge running clockwise, i.e. into the ring's inside): outside the outer
+boundary of the white ring, inside its inner one (``MarkerGeometry.tracked_edges``' order)."""
+
+
 @numba.njit(cache=True, nogil=True)
-def _residuals(R, t, k, pts, edge, ends, huber):
-    """Robust cost of the points' signed distances to the lines of their projected edges, and
-    the Huber-weighted normal equations (H, g).
+def _residuals(R, t, k, pts, edge, ends, huber, dark):
+    """Robust cost of the points' signed distances to the lines of their projected edges, each
+    moved ``dark`` px to its dark side, and the Huber-weighted normal equations (H, g) in the
+    pose's six parameters and ``dark``.
+
+    A log sensor fires where the log of the blurred edge's intensity is steepest, on the dark
+    side of the edge, so the events of a moving edge lie a fraction of a pixel to a pixel off
+    it, towards black: on both sides of the white ring the offsets point away from the ring
+    (more with more blur and contrast). Fitted with the pose, the offset no longer tilts it when
+    the edges firing are not balanced (a motion that fires only some of them).
 
     A point's Jacobian is linear in its offset q = (1, u, v) from its edge's projected start:
     J = M_e q. So the points only add up, per edge, the weighted moments S_e = sum w q q^T and
@@ -225,7 +240,7 @@ def _residuals(R, t, k, pts, edge, ends, huber):
             e = edge[i]
             w0 = wu0 = wv0 = wuu = wuv = wvv = wr0 = wru = wrv = 0.0
         u, v = pts[i, 0] - a_px[e, 0], pts[i, 1] - a_px[e, 1]
-        r = (d[e, 0] * v - d[e, 1] * u) / length[e]
+        r = (d[e, 0] * v - d[e, 1] * u) / length[e] - DARK_SIDE[e] * dark
         ar = abs(r)
         w = 1.0 if ar <= huber else huber / ar
         cost += 0.5 * r * r if ar <= huber else huber * (ar - 0.5 * huber)
@@ -239,36 +254,51 @@ def _residuals(R, t, k, pts, edge, ends, huber):
         wr0 += wr
         wru += wr * u
         wrv += wr * v
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
+    H = np.zeros((7, 7))
+    g = np.zeros(7)
     MS = np.empty(3)
     for e in range(m):
         S[e, 1, 0], S[e, 2, 0], S[e, 2, 1] = S[e, 0, 1], S[e, 0, 2], S[e, 1, 2]
+        side = -DARK_SIDE[e]  # d r / d dark
         for j in range(6):
             for c in range(3):
                 MS[c] = M[e, j, 0] * S[e, 0, c] + M[e, j, 1] * S[e, 1, c] + M[e, j, 2] * S[e, 2, c]
             for i in range(j, 6):
                 H[j, i] += MS[0] * M[e, i, 0] + MS[1] * M[e, i, 1] + MS[2] * M[e, i, 2]
+            H[j, 6] += side * MS[0]
             g[j] += M[e, j, 0] * h[e, 0] + M[e, j, 1] * h[e, 1] + M[e, j, 2] * h[e, 2]
-    for j in range(6):  # the lower triangle mirrors the upper one
+        H[6, 6] += S[e, 0, 0]
+        g[6] += side * h[e, 0]
+    for j in range(7):  # the lower triangle mirrors the upper one
         for i in range(j):
             H[j, i] = H[i, j]
     return cost, H, g
 
 
 @numba.njit(cache=True, nogil=True)
-def _lm(R, t, k, pts, edge, ends, huber, iterations):
-    cost, H, g = _residuals(R, t, k, pts, edge, ends, huber)
+def _lm(R, t, k, pts, edge, ends, huber, iterations, dark, prior, fit_dark):
+    """Levenberg-Marquardt on the pose and, with ``fit_dark``, the dark-side offset, which
+    ``prior`` (a weight in points) pulls towards its starting value."""
+    n = 7 if fit_dark else 6
+    cost, H, g = _residuals(R, t, k, pts, edge, ends, huber, dark)
+    start = dark
     lam = 1e-3
     for _ in range(iterations):
-        A = H + lam * np.diag(np.diag(H) + 1e-9)
-        step = -np.linalg.solve(A, g)
+        A = H[:n, :n] + lam * np.diag(np.diag(H[:n, :n]) + 1e-9)
+        b = g[:n].copy()
+        if fit_dark:
+            A[6, 6] += prior
+            b[6] += prior * (dark - start)
+        step = -np.linalg.solve(A, b)
         dR = _so3_exp(step[:3])
-        R_new, t_new = dR @ R, dR @ t + step[3:]
+        R_new, t_new = dR @ R, dR @ t + step[3:6]
+        dark_new = dark + step[6] if fit_dark else dark
         # One pass for the cost and the next normal equations: most steps are taken.
-        new_cost, H_new, g_new = _residuals(R_new, t_new, k, pts, edge, ends, huber)
-        if new_cost < cost:
-            R, t, cost, H, g = R_new, t_new, new_cost, H_new, g_new
+        new_cost, H_new, g_new = _residuals(R_new, t_new, k, pts, edge, ends, huber, dark_new)
+        if new_cost + 0.5 * prior * (dark_new - start) ** 2 < cost + 0.5 * prior * (
+            dark - start
+        ) ** 2:
+            R, t, dark, cost, H, g = R_new, t_new, dark_new, new_cost, H_new, g_new
             lam = max(lam / 10, 1e-7)
             if np.abs(step).max() < 1e-7:
                 break
@@ -276,7 +306,17 @@ def _lm(R, t, k, pts, edge, ends, huber, iterations):
             lam *= 10
             if lam > 1e6:
                 break
-    return R, t, cost
+    return R, t, dark, cost, H[6, 6] if fit_dark else 0.0
+
+
+class PoseFit(NamedTuple):
+    T_cam_world: np.ndarray
+    cost: float
+    """Robust cost per point."""
+    dark_px: float
+    """The events' offset to their edges' dark side (``_residuals``)."""
+    dark_weight: float
+    """How many points (Huber-weighted) the offset was fitted to: 0 where it was not fitted."""
 
 
 def refine_pose(
@@ -287,18 +327,29 @@ def refine_pose(
     edges_world: np.ndarray,
     huber_px: float,
     iterations: int,
-) -> tuple[np.ndarray, float]:
+    dark_px: float = 0.0,
+    dark_prior: float = 0.0,
+) -> PoseFit:
     """Levenberg-Marquardt with a Huber loss: the pose that puts the (n, 2) ideal event pixels on
-    their edges' (8, 2, 3) projected lines; returns (T_cam_world, robust cost per point)."""
+    their edges' (8, 2, 3) projected lines, each moved to its dark side by an offset fitted
+    with it from ``dark_px`` (``_residuals``), held there with the weight of ``dark_prior``
+    points. The offset is fitted only when points lie on both an outer and an inner edge: on
+    one boundary alone it is the marker's distance."""
     k = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-    R, t, cost = _lm(
+    edge = edge.astype(np.int64)
+    sides = DARK_SIDE[edge]
+    fit_dark = bool(np.any(sides < 0) and np.any(sides > 0))
+    R, t, dark, cost, weight = _lm(
         np.ascontiguousarray(T_cam_world[:3, :3]),
         T_cam_world[:3, 3].copy(),
         k,
         np.ascontiguousarray(points_px, np.float64),
-        edge.astype(np.int64),
+        edge,
         np.ascontiguousarray(edges_world, np.float64),
         huber_px,
         iterations,
+        float(dark_px),
+        float(dark_prior),
+        fit_dark,
     )
-    return make_pose(R, t), cost / max(1, len(edge))
+    return PoseFit(make_pose(R, t), cost / max(1, len(edge)), dark, weight)

@@ -44,6 +44,11 @@ _CAPTURE_GATES = (2.0, 1.0, 0.0)
 nearest edge only, so the ring's two sides stay apart, and never from deeper than ``_LOCATOR_GAP``
 inside the inner edges, where the blinking inner locator begins one ring further in."""
 _LOCATOR_GAP = 0.6
+_DARK_MEMORY = 10
+"""Pose solves over which the events' dark-side offset is pooled (each solve's weight decays by
+1/10 at the next): the offset follows the optics and the screen's contrast, which hold for far
+longer than a solve, while a single solve's estimate swings by half a pixel when few edges
+fire."""
 _CAPTURE_MIN_EVENTS = 50
 _BLOCK = 64
 """Events whose distances to the edges ``_assign`` computes at a time."""
@@ -512,6 +517,11 @@ class EdgeTracker:
         self._world_len = np.linalg.norm(self.edges_world[:, 1] - self.edges_world[:, 0], axis=1)
         self.K = config.camera.K
         self.T_cam_world = T_cam_world
+        self.dark_px = 0.0
+        """How far the edges' events lie to their dark side, fitted with each pose
+        (``pose.refine_pose``) and pooled over the latest ``_DARK_MEMORY`` solves."""
+        self._dark_weight = 0.0
+        """The points ``dark_px`` was fitted to, the older solves' decayed."""
         self.last_update_us = now_us
         self._last_rebin_us = now_us
         self._slots = None
@@ -698,7 +708,7 @@ class EdgeTracker:
         that the edges of the black ring around the white one, an edge of the other sign a ring
         width further out, do not pull the pose."""
         q = self.config.tracker
-        T = self.T_cam_world
+        T, dark = self.T_cam_world, self.dark_px
         for scale in _CAPTURE_GATES:
             a, b = self._project_edges(T)
             if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
@@ -712,11 +722,12 @@ class EdgeTracker:
             if np.count_nonzero(near) < _CAPTURE_MIN_EVENTS or len(np.unique(edge[near])) < 4:
                 return False
             pts = np.stack([xu[near], yu[near]], 1)
-            T, _ = refine_pose(
-                T, self.K, pts, edge[near], self.edges_world, q.huber_px, q.max_iterations
+            T, _, dark, _ = refine_pose(
+                T, self.K, pts, edge[near], self.edges_world, q.huber_px, q.max_iterations, dark
             )
         if not np.all(np.isfinite(self._project_edges(T))):
             return False  # the last pass put the marker behind the camera
+        self.dark_px = dark
         self.restart(T, now_us)
         return True
 
@@ -809,9 +820,19 @@ class EdgeTracker:
             return None
         _carry(sx, sy, st, self._cap, self._va, self._vb, self._ref_us, now_us, q.carry_us)
         pts, edge = _fresh_points(sx, sy, st, since)
-        T, cost = refine_pose(
-            self.T_cam_world, self.K, pts, edge, self.edges_world, q.huber_px, q.max_iterations
+        prior = self._dark_weight * (1 - 1 / _DARK_MEMORY)
+        T, cost, self.dark_px, weight = refine_pose(
+            self.T_cam_world,
+            self.K,
+            pts,
+            edge,
+            self.edges_world,
+            q.huber_px,
+            q.max_iterations,
+            self.dark_px,
+            prior,
         )
+        self._dark_weight = prior + weight
         self.T_cam_world = T
         self._rebin(T, now_us)
         self._fit_velocity(now_us)
