@@ -251,6 +251,9 @@ class Receiver:
         """A detection under motion waiting for the frame after its burst's (``_postpone``)."""
         self._track: Track | None = None
         """The lock being tracked (``state`` is ``TRACKING``)."""
+        self._dark: tuple[float, float] = (0.0, 0.0)
+        """The latest proven lock's tracker's (``dark_px``, ``dark_weight``): the optics and
+        the screen's contrast that set them outlast a lock."""
         self._verified: tuple[int, np.ndarray] | None = None
         """(time, T_cam_world) of the latest frame that passed its check (``turn_memory_us``)."""
         self._gaps: deque[tuple[int, int]] = deque(maxlen=8)
@@ -368,6 +371,7 @@ class Receiver:
         frame after the burst's is still to come (``_postpone``)."""
         T, t_lock = found.T_cam_world, found.t_us
         tracker = EdgeTracker(self.config, T, t_lock, found.flow_px_per_ms)
+        tracker.dark_px, tracker.dark_weight = self._dark
         outline = not found.refined
         if not found.moving:
             with self._cpu("lock"):  # a still detection may lag a slow drift: snap to the ring
@@ -458,10 +462,11 @@ class Receiver:
 
         Under motion a lock must show the inner locator clearly in the frames after the burst's
         (a ring fit a ring width off, or a wrong rotation, still reads at half the contrast),
-        the right way up if the burst did not show it (``Detection.oriented``), and keep the
-        tracker on the ring's edges; a still lock only needs the locator to show. A frame that
-        passes its check settles it, as only a right pose reads one: a slow ring's few events
-        can leave the fit ratio low at a right pose."""
+        the right way up whether or not the burst showed it (``Detection.oriented``: a blurred
+        burst can show the 'L' a quarter turn off as clearly), and keep the tracker on the
+        ring's edges; a still lock only needs the locator to show. A frame that passes its check
+        settles it, as only a right pose reads one: a slow ring's few events can leave the fit
+        ratio low at a right pose."""
         q = self.config.detector
         if found.moving:  # the burst's own frame reads poorly (``_postpone``)
             frames = [f for f in frames if f.read.index > 0]
@@ -469,10 +474,10 @@ class Receiver:
                 return "verify: no frame after the burst's was read"
         if any(f.payload_bits for f in frames):
             return None
-        if not found.oriented:
-            leads = [f.read.turns[0] - f.read.turns[1:].max() for f in frames]
-            if np.mean(leads) < self.config.decoder.min_turn_lead:
-                return "verify: neither the burst nor the frames after it read the 'L' this way up"
+        if found.moving or not found.oriented:
+            lead = np.mean([f.read.turns[0] - f.read.turns[1:].max() for f in frames])
+            if lead < self.config.decoder.min_turn_lead:
+                return f"verify: the frames read do not show the 'L' this way up (lead {lead:.2f})"
         best = max((f.read.locator_score for f in frames), default=None)
         need = q.min_lock_locator_score if found.moving else self.config.decoder.min_locator_score
         if best is not None and best < need:
@@ -564,6 +569,8 @@ class Receiver:
     def _end_track(self) -> list[PoseEstimate]:
         """Back to detecting; the track's smoothed poses still held."""
         poses = self._flush_poses()
+        if self._track.proven_at_us is not None:
+            self._dark = self._track.tracker.dark_px, self._track.tracker.dark_weight
         self.state = DETECTING
         self._track = None
         return poses

@@ -520,7 +520,7 @@ class EdgeTracker:
         self.dark_px = 0.0
         """How far the edges' events lie to their dark side, fitted with each pose
         (``pose.refine_pose``) and pooled over the latest ``_DARK_MEMORY`` solves."""
-        self._dark_weight = 0.0
+        self.dark_weight = 0.0
         """The points ``dark_px`` was fitted to, the older solves' decayed."""
         self.last_update_us = now_us
         self._last_rebin_us = now_us
@@ -723,7 +723,15 @@ class EdgeTracker:
                 return False
             pts = np.stack([xu[near], yu[near]], 1)
             T, _, dark, _ = refine_pose(
-                T, self.K, pts, edge[near], self.edges_world, q.huber_px, q.max_iterations, dark
+                T,
+                self.K,
+                pts,
+                edge[near],
+                self.edges_world,
+                q.huber_px,
+                q.max_iterations,
+                dark,
+                self.dark_weight,
             )
         if not np.all(np.isfinite(self._project_edges(T))):
             return False  # the last pass put the marker behind the camera
@@ -820,7 +828,7 @@ class EdgeTracker:
             return None
         _carry(sx, sy, st, self._cap, self._va, self._vb, self._ref_us, now_us, q.carry_us)
         pts, edge = _fresh_points(sx, sy, st, since)
-        prior = self._dark_weight * (1 - 1 / _DARK_MEMORY)
+        prior = self.dark_weight * (1 - 1 / _DARK_MEMORY)
         T, cost, self.dark_px, weight = refine_pose(
             self.T_cam_world,
             self.K,
@@ -832,7 +840,7 @@ class EdgeTracker:
             self.dark_px,
             prior,
         )
-        self._dark_weight = prior + weight
+        self.dark_weight = prior + weight
         self.T_cam_world = T
         self._rebin(T, now_us)
         self._fit_velocity(now_us)
