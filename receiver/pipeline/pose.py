@@ -281,7 +281,7 @@ def _lm(R, t, k, pts, edge, ends, huber, iterations, dark, prior, fit_dark):
     ``prior`` (a weight in points) pulls towards its starting value."""
     n = 7 if fit_dark else 6
     cost, H, g = _residuals(R, t, k, pts, edge, ends, huber, dark)
-    start = dark
+    start = dark  # the prior's cost, 0.5 * prior * (dark - start) ** 2, is 0 here
     lam = 1e-3
     for _ in range(iterations):
         A = H[:n, :n] + lam * np.diag(np.diag(H[:n, :n]) + 1e-9)
@@ -295,9 +295,8 @@ def _lm(R, t, k, pts, edge, ends, huber, iterations, dark, prior, fit_dark):
         dark_new = dark + step[6] if fit_dark else dark
         # One pass for the cost and the next normal equations: most steps are taken.
         new_cost, H_new, g_new = _residuals(R_new, t_new, k, pts, edge, ends, huber, dark_new)
-        if new_cost + 0.5 * prior * (dark_new - start) ** 2 < cost + 0.5 * prior * (
-            dark - start
-        ) ** 2:
+        new_cost += 0.5 * prior * (dark_new - start) ** 2
+        if new_cost < cost:
             R, t, dark, cost, H, g = R_new, t_new, dark_new, new_cost, H_new, g_new
             lam = max(lam / 10, 1e-7)
             if np.abs(step).max() < 1e-7:
@@ -312,7 +311,7 @@ def _lm(R, t, k, pts, edge, ends, huber, iterations, dark, prior, fit_dark):
 class PoseFit(NamedTuple):
     T_cam_world: np.ndarray
     cost: float
-    """Robust cost per point."""
+    """Robust cost per point, the offset's pull towards its prior included."""
     dark_px: float
     """The events' offset to their edges' dark side (``_residuals``)."""
     dark_weight: float
