@@ -332,12 +332,12 @@ def refine_pose(
     """Levenberg-Marquardt with a Huber loss: the pose that puts the (n, 2) ideal event pixels on
     their edges' (8, 2, 3) projected lines, each moved to its dark side by an offset fitted
     with it from ``dark_px`` (``_residuals``), held there with the weight of ``dark_prior``
-    points. The offset is fitted only when points lie on both an outer and an inner edge: on
-    one boundary alone it is the marker's distance."""
+    points (infinite: not fitted). The offset is fitted only when points lie on both an outer
+    and an inner edge: on one boundary alone it is the marker's distance."""
     k = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
     edge = edge.astype(np.int64)
     sides = DARK_SIDE[edge]
-    fit_dark = bool(np.any(sides < 0) and np.any(sides > 0))
+    fit_dark = bool(np.any(sides < 0) and np.any(sides > 0) and np.isfinite(dark_prior))
     R, t, dark, cost, weight = _lm(
         np.ascontiguousarray(T_cam_world[:3, :3]),
         T_cam_world[:3, 3].copy(),

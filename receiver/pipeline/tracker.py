@@ -708,7 +708,7 @@ class EdgeTracker:
         that the edges of the black ring around the white one, an edge of the other sign a ring
         width further out, do not pull the pose."""
         q = self.config.tracker
-        T, dark = self.T_cam_world, self.dark_px
+        T = self.T_cam_world
         for scale in _CAPTURE_GATES:
             a, b = self._project_edges(T)
             if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
@@ -722,7 +722,7 @@ class EdgeTracker:
             if np.count_nonzero(near) < _CAPTURE_MIN_EVENTS or len(np.unique(edge[near])) < 4:
                 return False
             pts = np.stack([xu[near], yu[near]], 1)
-            T, _, dark, _ = refine_pose(
+            T, _, _, _ = refine_pose(
                 T,
                 self.K,
                 pts,
@@ -730,12 +730,11 @@ class EdgeTracker:
                 self.edges_world,
                 q.huber_px,
                 q.max_iterations,
-                dark,
-                self.dark_weight,
+                self.dark_px,
+                np.inf,
             )
         if not np.all(np.isfinite(self._project_edges(T))):
             return False  # the last pass put the marker behind the camera
-        self.dark_px = dark
         self.restart(T, now_us)
         return True
 
