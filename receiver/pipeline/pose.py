@@ -295,7 +295,8 @@ def _lm(R, t, k, pts, edge, ends, huber, iterations, dark, prior, fit_dark):
         dark_new = dark + step[6] if fit_dark else dark
         # One pass for the cost and the next normal equations: most steps are taken.
         new_cost, H_new, g_new = _residuals(R_new, t_new, k, pts, edge, ends, huber, dark_new)
-        new_cost += 0.5 * prior * (dark_new - start) ** 2
+        if fit_dark:
+            new_cost += 0.5 * prior * (dark_new - start) ** 2
         if new_cost < cost:
             R, t, dark, cost, H, g = R_new, t_new, dark_new, new_cost, H_new, g_new
             lam = max(lam / 10, 1e-7)
