@@ -44,9 +44,9 @@ _CAPTURE_GATES = (2.0, 1.0, 0.0)
 nearest edge only, so the ring's two sides stay apart, and never from deeper than ``_LOCATOR_GAP``
 inside the inner edges, where the blinking inner locator begins one ring further in."""
 _LOCATOR_GAP = 0.6
-_DARK_MEMORY = 10
+_DARK_MEMORY = 100
 """Pose solves over which the events' dark-side offset is pooled (each solve's weight decays by
-1/10 at the next): the offset follows the optics and the screen's contrast, which hold for far
+1/100 at the next): the offset follows the optics and the screen's contrast, which hold for far
 longer than a solve, while a single solve's estimate swings by half a pixel when few edges
 fire."""
 _CAPTURE_MIN_EVENTS = 50
