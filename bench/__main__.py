@@ -304,7 +304,58 @@ def run_localization(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
         f"1.40-1.96 cm); {sum(r.decodable for r in results)} of {len(results)} "
         "decodable (paper: all)."
     )
-    return "\n".join(rows) + figure + "\n", headline
+    notes = localization_against_paper(results)
+    return "\n".join(rows) + figure + "\n" + (f"\n{notes}\n" if notes else ""), headline
+
+
+def _span(values: list[float], fmt: Callable[[float], str]) -> str:
+    """The smallest and largest of ``values`` as ``fmt`` writes them, "a-b", or one value."""
+    lo, hi = fmt(min(values)), fmt(max(values))
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def _whole(x: float) -> str:
+    return f"{x:.0f}"
+
+
+def localization_against_paper(results: list[localization.SequenceResult]) -> str:
+    """How far the sequences' figures lie from the paper's table, and why."""
+    scored = [
+        (r, paper)
+        for r, paper in zip(results, localization.PAPER_TABLE, strict=False)
+        if not math.isnan(r.ate_cm)
+    ]
+    if not scored:
+        return ""
+    ours = [r for r, _ in scored]
+    columns = zip(*(paper for _, paper in scored), strict=True)
+    time_s, rpe_deg, rpe_cm, ate_cm, ber = (list(c) for c in columns)
+    ratios = [paper[3] / r.ate_cm for r, paper in scored if r.ate_cm > 0]
+    bers = [r.ber for r in ours if r.ber is not None]
+    text = f"Against the paper: ATE {_span([r.ate_cm for r in ours], _num)} cm against its "
+    text += f"{_span(ate_cm, _num)} cm"
+    if ratios:
+        text += f", {_span(ratios, _whole)} times lower sequence by sequence"
+    text += (
+        f"; RPE {_span([r.rpe_rot_deg for r in ours], _num)} deg and "
+        f"{_span([r.rpe_trans_cm for r in ours], _num)} cm against its {_span(rpe_deg, _num)} "
+        f"deg and {_span(rpe_cm, _num)} cm"
+    )
+    if bers:
+        text += (
+            f"; BER before FEC {_span(bers, _pct)} against its {_span(ber, _pct)}, our reader's "
+            "(section `bench:realistic` measures the authors' cell reader on the `evk4` camera, "
+            "still: it errs far more)"
+        )
+    return text + (
+        ". The virtual camera's ground truth is its exact pose, sampled at the paper's 360 Hz "
+        "but with no motion-capture jitter (to which an RPE over 2.8 ms steps is sensitive), "
+        "no error in the camera's calibration or the marker's place, and no clock offset "
+        f"between the two, and each sequence lasts {_span([r.time_s for r in ours], _whole)} s "
+        f"where the paper's lasted {_span(time_s, _whole)} s: the gap is what a real set-up "
+        "adds to the tracker's own error, and does not show a better tracker than the "
+        "authors'."
+    )
 
 
 def run_baselines(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
