@@ -304,7 +304,58 @@ def run_localization(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
         f"1.40-1.96 cm); {sum(r.decodable for r in results)} of {len(results)} "
         "decodable (paper: all)."
     )
-    return "\n".join(rows) + figure + "\n", headline
+    notes = localization_against_paper(results)
+    return "\n".join(rows) + figure + "\n" + (f"\n{notes}\n" if notes else ""), headline
+
+
+def _span(values: list[float], fmt: Callable[[float], str]) -> str:
+    """The smallest and largest of ``values`` as ``fmt`` writes them, "a-b", or one value."""
+    lo, hi = fmt(min(values)), fmt(max(values))
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def _whole(x: float) -> str:
+    return f"{x:.0f}"
+
+
+def localization_against_paper(results: list[localization.SequenceResult]) -> str:
+    """How far the sequences' figures lie from the paper's table, and why."""
+    scored = [
+        (r, paper)
+        for r, paper in zip(results, localization.PAPER_TABLE, strict=False)
+        if not math.isnan(r.ate_cm)
+    ]
+    if not scored:
+        return ""
+    ours = [r for r, _ in scored]
+    columns = zip(*(paper for _, paper in scored), strict=True)
+    time_s, rpe_deg, rpe_cm, ate_cm, ber = (list(c) for c in columns)
+    ratios = [paper[3] / r.ate_cm for r, paper in scored if r.ate_cm > 0]
+    bers = [r.ber for r in ours if r.ber is not None]
+    text = f"Against the paper: ATE {_span([r.ate_cm for r in ours], _num)} cm against its "
+    text += f"{_span(ate_cm, _num)} cm"
+    if ratios:
+        text += f", {_span(ratios, _whole)} times lower sequence by sequence"
+    text += (
+        f"; RPE {_span([r.rpe_rot_deg for r in ours], _num)} deg and "
+        f"{_span([r.rpe_trans_cm for r in ours], _num)} cm against its {_span(rpe_deg, _num)} "
+        f"deg and {_span(rpe_cm, _num)} cm"
+    )
+    if bers:
+        text += (
+            f"; BER before FEC {_span(bers, _pct)} against its {_span(ber, _pct)}, our reader's "
+            "(section `bench:realistic` measures the authors' cell reader on the `evk4` camera, "
+            "still: it errs far more)"
+        )
+    return text + (
+        ". The virtual camera's ground truth is its exact pose, sampled at the paper's 360 Hz "
+        "but with no motion-capture jitter (to which an RPE over 2.8 ms steps is sensitive), "
+        "no error in the camera's calibration or the marker's place, and no clock offset "
+        f"between the two, and each sequence lasts {_span([r.time_s for r in ours], _whole)} s "
+        f"where the paper's lasted {_span(time_s, _whole)} s: the gap is what a real set-up "
+        "adds to the tracker's own error, and does not show a better tracker than the "
+        "authors'."
+    )
 
 
 def run_baselines(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
@@ -362,7 +413,53 @@ def run_baselines(plan: Plan, out: Path, jobs: int) -> tuple[str, str]:
             share += f" ({_share(np.concatenate([o.exact for o in group]))} bit-exact before FEC)"
         parts.append(f"{name}: {share}, {np.mean([o.throughput_bps for o in group]):.0f} bit/s")
     headline = "; ".join(parts) + "."
-    return "\n".join(rows) + "\n\n![comparison](comparison.png)\n", headline
+    notes = comparison_against_paper(outcomes)
+    figure = "\n\n![comparison](comparison.png)\n"
+    return "\n".join(rows) + figure + (f"\n{notes}\n" if notes else ""), headline
+
+
+PAPER_QR_RECEIVED = (0.40, 0.85)
+"""The share of QR v1-L codes the paper's frame camera read, without and with blank frames."""
+
+
+def comparison_against_paper(outcomes: list[baselines.Outcome]) -> str:
+    """How far the QR baseline lies from the paper's, and why."""
+    by_system: dict[str, list[baselines.Outcome]] = {}
+    for o in outcomes:
+        by_system.setdefault(o.system, []).append(o)
+    qr, qr_blank = "QR v1-L", "QR v1-L + blank"
+    ours = [name for name in by_system if name.startswith("ours")]
+    if qr not in by_system or qr_blank not in by_system or not ours:
+        return ""
+
+    def received(name: str) -> float:
+        return float(np.concatenate([o.received for o in by_system[name]]).mean())
+
+    def bps(name: str) -> float:
+        return float(np.mean([o.throughput_bps for o in by_system[name]]))
+
+    best = max(ours, key=bps)
+    shares = (received(qr), received(qr_blank))
+    text = (
+        f"Against the paper: QR v1-L codes are read {shares[0]:.0%} of the time here against "
+        f"its ~{PAPER_QR_RECEIVED[0]:.0%}, {shares[1]:.0%} with blank frames against its "
+        f"~{PAPER_QR_RECEIVED[1]:.0%}. "
+    )
+    if any(here > paper + 0.1 for here, paper in zip(shares, PAPER_QR_RECEIVED, strict=True)):
+        text += (
+            "Our frame camera is kinder than the paper's: a global shutter, no "
+            "synchronisation jitter between screen and camera, and an exposure and noise the "
+            "paper does not state (ours are guesses). "
+        )
+    if bps(qr) > bps(best):
+        return text + (
+            f"At 136 bits a code, QR v1-L then delivers {bps(qr):.0f} bit/s against our "
+            f"{bps(best):.0f} (`{best}`), where the paper found ours ahead."
+        )
+    return text + (
+        f"Ours still delivers more ({bps(best):.0f} bit/s, `{best}`, against QR v1-L's "
+        f"{bps(qr):.0f}), as in the paper."
+    )
 
 
 EXPERIMENTS = (

@@ -61,11 +61,13 @@ HOLDS = (1, 2, 3, 4)
 """Display refreshes each frame is held for: the frame rates a display offers are its own
 refresh rate divided by these."""
 NOMINAL_HZ = 60.0
-EVK4_MIN_PX = {"robust": 5.0, "fast": 6.0}
-"""Pixels per cell each profile needs on the EVK4 (the simulator's ``evk4`` preset):
-``robust`` reads nothing at 5 px per cell in ``bench.realistic`` and nearly every frame at 5.5
-in ``bench.closed_loop``, still and hand-held; ``fast``, read from one transition, nearly every
-frame at 6.5 still, most at 6, none at 5.5 (``bench.closed_loop``)."""
+EVK4_MIN_PX = {"robust": 5.0, "fast": 5.0}
+"""Pixels per cell each profile needs on the EVK4 (the simulator's ``evk4`` preset), a tenth
+or so above the smallest cells it reads. ``robust`` reads nearly every frame at 5.5 in
+``bench.closed_loop``, still and hand-held, and at 5 in ``bench.realistic`` every frame at
+60 Hz but none at 240 Hz. ``fast`` (still: ``fast_max_shift`` keeps it off a moving camera)
+reads most frames at 5 px per cell in ``bench.realistic`` at 60 and 240 Hz and none at 4; the
+closed loop's fixed ``fast`` settings deliver at 4.6-6 px per cell and nothing at 4.4."""
 
 
 @dataclass(frozen=True)

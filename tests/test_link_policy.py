@@ -363,7 +363,7 @@ def test_bad_settings_are_refused() -> None:
 @pytest.mark.parametrize(
     ("px16", "flow", "top"),
     [
-        (25.84, 0.0, LinkChoice("fast", 64)),
+        (25.84, 0.0, LinkChoice("fast", 80)),
         (25.84, 1.0, LinkChoice("robust", 80)),
         (12.4, 0.0, LinkChoice("fast", 32)),
     ],
@@ -372,9 +372,10 @@ def test_the_evk4_defaults_climb_to_the_smallest_cells_it_reads(
     px16: float, flow: float, top: LinkChoice
 ) -> None:
     """The closed-loop benchmark's pixels per cell at N = 16, still (no motion reported) or
-    hand-held at 1 px/ms. At 0.6 m (25.8): ``fast``
-    N = 64 at 6.9 px still, not N = 72 at 6.0; hand-held, ``robust`` N = 80 at 5.5 px, not
-    N = 96 at 4.6. At 1.25 m (12.4) still: ``fast`` N = 32 at 6.5 px, not N = 40 at 5.0."""
+    hand-held at 1 px/ms, on a camera that reads each profile down to what it needs. At 0.6 m
+    (25.8): ``fast`` N = 80 at 5.5 px still, not N = 96 at 4.6 (not even probed); hand-held,
+    ``robust`` N = 80 at 5.5 px, not N = 96 at 4.6. At 1.25 m (12.4) still: ``fast`` N = 32
+    at 6.5 px, after a probe of N = 40 at 4.96, just below the 5 this camera reads."""
     policy = LinkPolicy()
     assert policy.config.min_px == EVK4_MIN_PX
     end, reasons, _ = run(

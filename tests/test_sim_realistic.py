@@ -190,3 +190,27 @@ def test_the_realistic_bench_fits_the_marker_and_can_lift_the_readout_limits():
     lifted = sensor_for("evk4" + NO_READOUT)
     assert (lifted.readout_hz, lifted.erc_hz, lifted.link_hz) == (None, None, None)
     assert lifted.photoreceptor_hz == SensorModel.preset("evk4").photoreceptor_hz
+
+
+def test_the_authors_reader_counts_a_cell_by_its_recent_on_events_over_its_whole_area():
+    from bench.authors_reader import SurfaceReader
+
+    # A 4 x 4 grid of 10 px cells at (10, 10)-(50, 50) of a 60 x 60 sensor.
+    corners = np.array([[10.0, 10.0], [50.0, 10.0], [50.0, 50.0], [10.0, 50.0]])
+    reader = SurfaceReader(corners, 4, (60, 60))
+    ys, xs = np.mgrid[20:30, 30:40]  # the whole cell of row 1, column 2
+    lit = np.zeros(xs.size, EVENT_DTYPE)
+    lit["x"], lit["y"], lit["t"], lit["p"] = xs.ravel(), ys.ravel(), 10_000, 1
+    stale = np.zeros(100, EVENT_DTYPE)  # row 3, column 0, long before
+    stale["x"], stale["y"], stale["t"], stale["p"] = xs.ravel() - 20, ys.ravel() + 20, 100, 1
+    ys0, xs0 = np.mgrid[10:20, 10:20]  # row 0, column 0: its outer two pixels, as spill fires
+    ring = (np.minimum(xs0 - 10, 19 - xs0) < 2) | (np.minimum(ys0 - 10, 19 - ys0) < 2)
+    border = np.zeros(int(ring.sum()), EVENT_DTYPE)
+    border["x"], border["y"], border["t"], border["p"] = xs0[ring], ys0[ring], 10_000, 1
+    off = lit.copy()
+    off["x"] -= 10  # row 1, column 1: OFF events only
+    off["p"] = -1
+    reader.feed(np.concatenate([stale, border, lit, off]))
+    # 64% of the border cell fired: the whole-cell rule reads it 1, its inner part 0.
+    assert np.argwhere(reader.cells(3_000.0)).tolist() == [[0, 0], [1, 2]]
+    assert np.argwhere(reader.cells(3_000.0, margin=0.2)).tolist() == [[1, 2]]
