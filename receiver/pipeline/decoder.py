@@ -423,11 +423,8 @@ class _Split:
     standard deviations (0 if either is empty): how clearly this scale splits them."""
 
 
-def _ring_references(
-    levels: np.ndarray, ring_cells: np.ndarray, ring_white: np.ndarray
-) -> tuple[float, float]:
-    """Medians of the locator ring's white and black cells in (n, n) ``levels``."""
-    ring = levels[ring_cells[:, 1], ring_cells[:, 0]]
+def _ring_references(ring: np.ndarray, ring_white: np.ndarray) -> tuple[float, float]:
+    """Medians of the locator ring's white and black cells, given the ring's levels."""
     return float(np.median(ring[ring_white])), float(np.median(ring[~ring_white]))
 
 
@@ -435,7 +432,7 @@ def _split_levels(levels: np.ndarray, ring_cells: np.ndarray, ring_white: np.nda
     """The payload of (n, n) ``levels`` split at the threshold between its own two clusters
     (``_two_means``), kept within ``_SPLIT_RANGE`` of the way from the ring's black cells'
     median to its white cells'."""
-    white_ref, black_ref = _ring_references(levels, ring_cells, ring_white)
+    white_ref, black_ref = _ring_references(levels[ring_cells[:, 1], ring_cells[:, 0]], ring_white)
     payload = levels[1:-1, 1:-1]
     contrast = max(white_ref - black_ref, 1e-9)
     lo, hi = (black_ref + share * contrast for share in _SPLIT_RANGE)
@@ -687,10 +684,10 @@ class CellReader:
         # The locator's readings take the densities as they are: the spill's fit assumes the
         # 'L' upright, which they judge.
         cells = self._ring_cells
-        white_ref, black_ref = _ring_references(density, cells, self._ring_white)
+        ring = density[cells[:, 1], cells[:, 0]]
+        white_ref, black_ref = _ring_references(ring, self._ring_white)
         score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
-        ring_mean = float(density[cells[:, 1], cells[:, 0]].mean())
-        turns = turn_readings(density, self.config.geometry) / max(ring_mean, 1e-9)
+        turns = turn_readings(density, self.config.geometry) / max(float(ring.mean()), 1e-9)
         raw = density
         for _ in range(2):  # the second pass fits the spill on the bits the first corrected
             split = self._split(_less_spill(raw, self._lit(bits)))
