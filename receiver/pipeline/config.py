@@ -332,8 +332,14 @@ class ReceiverConfig:
     pose_interval_us: int = 1000
     """Longest gap between two output poses while the camera (and pose) stand still."""
     pose_smoothing_us: int = 5000
-    """Each output pose is a straight line fitted to the poses within this much event time of it
-    (``smoothing.PoseSmoother``), and comes this much later; 0 gives the tracker's own."""
+    """Each output pose places the marker's centre in the camera frame on a straight line fitted
+    to the poses within this much event time of it (``smoothing.PoseSmoother``); 0 gives the
+    tracker's own poses."""
+    orientation_smoothing_us: int = 15000
+    """...and the camera's orientation on one fitted within this much (at least
+    ``pose_smoothing_us``), which is how much later each pose comes. The orientation is what a
+    small marker's image fixes worst, with a noise that stays correlated over several updates:
+    at 2.6 m from a 138 px marker, 5 ms left 21% of the poses more than 2 cm off, 15 ms 2%."""
 
     def __post_init__(self) -> None:
         get_profile(self.profile)  # raises with the list of valid names
@@ -342,8 +348,11 @@ class ReceiverConfig:
             raise ValueError(f"refresh rate must be {hz_range} Hz, got {self.refresh_hz}")
         if self.marker_size_m <= 0:
             raise ValueError(f"marker size must be positive metres, got {self.marker_size_m}")
-        if self.pose_smoothing_us < 0:
-            raise ValueError(f"pose smoothing must be >= 0 us, got {self.pose_smoothing_us}")
+        if self.pose_smoothing_us < 0 or self.orientation_smoothing_us < 0:
+            raise ValueError(
+                f"pose smoothing must be >= 0 us, got {self.pose_smoothing_us} "
+                f"and {self.orientation_smoothing_us} for the orientation"
+            )
         MarkerGeometry(self.cells, self.ring)  # raises for an unsupported N
 
     @cached_property

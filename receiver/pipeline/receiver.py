@@ -2,9 +2,9 @@
 
 ``Receiver.push(chunk)`` takes an event chunk and returns what it produced: poses, read frames,
 completed messages and state changes, in time order but for the poses, which come once the
-updates after them have smoothed them (``ReceiverConfig.pose_smoothing_us``, 5 ms). The live
-daemon and the offline ``decode`` command share it. The stream decoder survives tracking losses,
-so symbols gathered before a loss still count towards the message.
+updates after them have smoothed them (``ReceiverConfig.orientation_smoothing_us``, 15 ms).
+The live daemon and the offline ``decode`` command share it. The stream decoder survives tracking
+losses, so symbols gathered before a loss still count towards the message.
 
 Detection attempts are spaced in event time (``DetectorParams.retry_us``), so a recording decodes
 the same on any machine; only a real-time source also spaces them by their CPU cost. A detection
@@ -261,7 +261,12 @@ class Receiver:
         them (a camera's lost packets, the virtual camera skipping ahead)."""
         self._poses = PoseHistory()
         """The tracked poses (T_cam_world) that the decoder reads frames through."""
-        self._smoother = PoseSmoother(config.pose_smoothing_us)
+        geo = config.geometry
+        self._smoother = PoseSmoother(
+            config.pose_smoothing_us,
+            config.orientation_smoothing_us,
+            pivot=geo.locator_corners(config.marker_size_m).mean(axis=0),
+        )
         self._last_pose_out = -(1 << 62)
         self.cell_px: float | None = None
         """A cell's side in pixels as the camera sees it: at the latest frame's or lock's pose,
