@@ -60,7 +60,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--pose-smoothing-ms",
         type=float,
         default=5.0,
-        help="fit each pose to the tracker's updates within this many ms of it (0: raw updates)",
+        help="fit where each pose puts the marker to the tracker's updates within this many "
+        "ms of it (0: raw updates)",
+    )
+    p.add_argument(
+        "--orientation-smoothing-ms",
+        type=float,
+        default=15.0,
+        help="fit each pose's orientation to the updates within this many ms of it (at least "
+        "--pose-smoothing-ms); poses come this much later",
     )
     p.add_argument(
         "--scene",
@@ -121,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
         refresh_hz=args.refresh_hz,
         marker_size_m=args.marker_size,
         pose_smoothing_us=round(args.pose_smoothing_ms * 1000),
+        orientation_smoothing_us=round(args.orientation_smoothing_ms * 1000),
     )
     receiver = Receiver(config, message_size=args.message_size)
     truth = None
