@@ -155,9 +155,10 @@ class Track:
     recheck_us: int | None = None
     """When a still lock's pose is next taken again from a fresh window
     (``Receiver._recheck_still``); None: never (a lock under motion)."""
-    outline_pose: bool = False
-    """A still lock's pose came from outline corners, not refined ones: its poses go out
-    unverified until the first recheck has taken the pose again (``Receiver._recheck_still``)."""
+    outline_until_us: float = -math.inf
+    """A still lock's pose came from outline corners, not refined ones: its poses before this
+    time go out unverified, and it is infinite until the first recheck has taken the pose again
+    (``Receiver._recheck_still``)."""
     updates_seen: int = 0
     """The receiver's pose updates at the last recheck: more since, and the camera moved."""
     missed: int = 0
@@ -177,8 +178,8 @@ class Track:
 
     def publishes_verified(self, t_us: int) -> bool:
         """Whether the pose at ``t_us`` goes out verified: proven then (``verified_at``) and not
-        held on outline corners (``outline_pose``)."""
-        return not self.outline_pose and self.verified_at(t_us)
+        held on outline corners (``outline_until_us``)."""
+        return t_us >= self.outline_until_us and self.verified_at(t_us)
 
     def failed_probation(self, frame: FrameOutput) -> bool:
         """Whether the lock must go after ``frame`` (locator seen, check failed or passed): an
@@ -410,7 +411,7 @@ class Receiver:
             else max(q.proof_lapse_us, 2 * self.config.frame_us),
             rechecked=[found.corners_px] if found.refined else [],
             recheck_us=recheck_us,
-            outline_pose=recheck_us is not None and outline,
+            outline_until_us=math.inf if recheck_us is not None and outline else -math.inf,
             updates_seen=self.stats.pose_updates,
         )
         self._triage.reset(now, stride)
@@ -536,7 +537,7 @@ class Receiver:
         1.7 m), where refined ones from another window hold it within a few millimetres."""
         track, q = self._track, self.config.detector
         track.recheck_us = now + q.still_recheck_us
-        track.outline_pose = False
+        track.outline_until_us = min(track.outline_until_us, now)
         if self.stats.pose_updates != track.updates_seen:
             track.updates_seen = self.stats.pose_updates
             track.rechecked.clear()
@@ -557,7 +558,8 @@ class Receiver:
         T = pnp(np.mean(track.rechecked, axis=0), world, cam)
         track.tracker.restart(T, now)
         self._poses.append(now, T)
-        return self._pose_output(now, T)
+        # the poses before the jump are smoothed on their own side of it
+        return self._flush_poses() + self._pose_output(now, T)
 
     def _select_near_edges(self) -> None:
         """Show the tracker only the events near its edges: twice its gate (so that a pose
