@@ -337,9 +337,9 @@ class ReceiverConfig:
     tracker's own poses."""
     orientation_smoothing_us: int = 15000
     """...and the camera's orientation on one fitted within this much (at least
-    ``pose_smoothing_us``), which is how much later each pose comes. The orientation is what a
-    small marker's image fixes worst, with a noise that stays correlated over several updates:
-    at 2.6 m from a 138 px marker, 5 ms left 21% of the poses more than 2 cm off, 15 ms 2%."""
+    ``pose_smoothing_us``; less while the camera turns fast), which is how much later each pose
+    comes. The orientation is what a small marker's image fixes worst, with a noise that stays
+    correlated over several updates."""
 
     def __post_init__(self) -> None:
         get_profile(self.profile)  # raises with the list of valid names

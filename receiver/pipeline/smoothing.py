@@ -32,10 +32,10 @@ PoseSample = tuple[int, np.ndarray]
 """(t_us, 4x4 transform)"""
 
 _TURN_RAD = np.radians(1.0)
-"""The orientation's window spans at most this much of the camera's turn (at the rate its
-widest fit gives), and at least the position's window: a straight line through a faster turn
-carries the turn's curvature into the pose. Hand-held at 1.5 px/ms a suite scene turned
-0.33 deg/ms, where the full window left 9% of its poses more than 2 cm off and this none."""
+"""The orientation's window spans at most this much of the camera's turn, and at least the
+position's window: a straight line through a longer stretch of a turn carries the turn's
+curvature into the pose. The rate is the widest fit's: a narrow fit's slope follows the slow
+wander of a far marker's tilt noise as readily as a turn."""
 
 
 @numba.njit(cache=True, nogil=True)
@@ -69,8 +69,8 @@ def _line_fit_at(t, rows, n, i, half_us):
 @numba.njit(cache=True, nogil=True)
 def _pose_at(t, rows, n, i, half_us, orientation_half_us, pivot):
     """The 4x4 T_world_cam at ``t[i]`` from the ``rows`` (R_world_cam's 9 entries, then the
-    pivot in the camera frame), each part fitted over its window (``_TURN_RAD``), the
-    rotation re-orthonormalised."""
+    pivot in the camera frame): the pivot fitted over ``half_us``, the rotation over
+    ``orientation_half_us`` or a ``_TURN_RAD`` turn, whichever is shorter, re-orthonormalised."""
     R, dR = _line_fit_at(t, rows[:, :9], n, i, orientation_half_us)
     # |dR|_F = sqrt(2) x the turn rate (rad/us) for small turns
     turn_us = _TURN_RAD * np.sqrt(2.0) / max(np.sqrt(np.sum(dR * dR)), 1e-15)
