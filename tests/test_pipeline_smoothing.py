@@ -28,9 +28,8 @@ def _smooth(smoother: PoseSmoother, t_us: np.ndarray, T: np.ndarray) -> list:
 
 def test_every_pose_comes_back_once_in_order_after_its_windows_have_passed():
     t_us = np.cumsum(np.random.default_rng(0).integers(300, 1500, 400))
-    # small: it must drop and grow as it goes
-    smoother = PoseSmoother(HALF_US, 3 * HALF_US, capacity=8)
     wide = 3 * HALF_US
+    smoother = PoseSmoother(HALF_US, wide, capacity=8)  # small: it must drop and grow as it goes
     given = []
     for t, pose in zip(t_us, _path(t_us), strict=True):
         back = smoother.push(int(t), pose)
