@@ -162,10 +162,10 @@ def run(preset: str, px: float, seed: int = 0) -> Result:
             for j in range(2):
                 ored[j] |= reads[m * READS + i][j]
         got, got_inner = (g[1 : n + 1, 1 : n + 1] for g in ored)
-        t_mid = start + (m + 1) * period
-        k = int(np.floor(t_mid * REFRESH_HZ / 1e6))
-        seen = [j for j in range(k - 2, k + 2) if j >= 0 and enc.is_data_frame(j)]
-        sent = min((truth.sent(j).astype(bool) for j in seen), key=lambda s: (got != s).sum())
+        matched = truth.match(got, start + (m + 1) * period)
+        if matched is None:
+            continue
+        sent = truth.sent(matched[0]).astype(bool)
         frames += 1
         errors += int((got != sent).sum())
         zero_to_one += int((got & ~sent).sum())

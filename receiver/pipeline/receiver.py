@@ -262,11 +262,10 @@ class Receiver:
         them (a camera's lost packets, the virtual camera skipping ahead)."""
         self._poses = PoseHistory()
         """The tracked poses (T_cam_world) that the decoder reads frames through."""
-        geo = config.geometry
         self._smoother = PoseSmoother(
             config.pose_smoothing_us,
             config.orientation_smoothing_us,
-            pivot=geo.locator_corners(config.marker_size_m).mean(axis=0),
+            pivot=config.geometry.locator_corners(config.marker_size_m).mean(axis=0),
         )
         self._last_pose_out = -(1 << 62)
         self.cell_px: float | None = None
