@@ -418,7 +418,11 @@ class Receiver:
         self.state = TRACKING
         out: list[Output] = [StateChange(now, TRACKING, "marker detected")]
         out += self._pose_output(t_lock, T)
-        track_from = t_lock if found.moving else now
+        # A still lock's tracker starts with the clusters it would hold had it been tracking all
+        # along (the buffered events of its slots' lifetime): a first solve on the few events
+        # of its first fraction of a millisecond alone can swing a drifting camera's pose by
+        # centimetres.
+        track_from = t_lock if found.moving else now - self.config.tracker.max_age_us
         self._cursor = min(
             track.reader.window(track.next_frame)[0] - self._triage.gap_us, track_from
         )
