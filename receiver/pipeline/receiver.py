@@ -474,9 +474,11 @@ class Receiver:
         the right way up whether or not the burst showed it (``Detection.oriented``: a blurred
         burst can show the 'L' a quarter turn off as clearly), and keep the tracker on the
         ring's edges; a still lock only needs the locator to show. A frame that passes its check
-        settles the 'L''s turn and the fit ratio (a slow ring's few events can leave it low at a
-        right pose), but not a faint locator: Reed-Solomon passes a grid two thirds of a cell
-        off at its corners, which reads the ring it straddles at a third of its contrast."""
+        settles the rest (a slow ring's few events can leave the fit ratio low at a right pose,
+        and blur the locator faint where `fast`'s toggling cells light its dark ones), but not
+        a moving lock's faint locator: a burst's ring fit two thirds of a cell off at its
+        corners reads the ring it straddles at a third of its contrast, and Reed-Solomon still
+        passes one frame in a few."""
         q = self.config.detector
         if found.moving:  # the burst's own frame reads poorly (``_postpone``)
             frames = [f for f in frames if f.read.index > 0]
@@ -484,14 +486,19 @@ class Receiver:
                 return "verify: no frame after the burst's was read"
         best = max((f.read.locator_score for f in frames), default=None)
         need = q.min_lock_locator_score if found.moving else self.config.decoder.min_locator_score
+        faint = None
         if best is not None and best < need:
-            return f"verify: the inner locator reads at {best:.2f} at the detected pose"
+            faint = f"verify: the inner locator reads at {best:.2f} at the detected pose"
+        if faint and found.moving:
+            return faint
         if any(f.payload_bits for f in frames):
             return None
         if found.moving or not found.oriented:
             lead = np.mean([f.read.turns[0] - f.read.turns[1:].max() for f in frames])
             if lead < self.config.decoder.min_turn_lead:
                 return f"verify: the frames read do not show the 'L' this way up (lead {lead:.2f})"
+        if faint:
+            return faint
         fit = self._track.tracker.fit_ratio
         if found.moving and fit is not None and fit < q.min_lock_fit_ratio:
             return f"verify: only {fit:.0%} of the events near the ring lie on its edges"
