@@ -756,11 +756,11 @@ class CellReader:
         count's noise is the same at any rate); where the toggled cells all fire and the
         untoggled ones spread instead (blur lights a dark cell from its toggling neighbours),
         it widens the untoggled ones' spread, and the linear scale separates better."""
-        cells, white = self._ring_cells, self._ring_white
-        linear = _split_levels(density, cells, white, self._on_only)
-        if self._on_only:
+        cells, white, on_only = self._ring_cells, self._ring_white, self._on_only
+        linear = _split_levels(density, cells, white, on_only)
+        if on_only:
             return linear
-        root = _split_levels(np.sqrt(np.maximum(density, 0.0)), cells, white, on_only=False)
+        root = _split_levels(np.sqrt(np.maximum(density, 0.0)), cells, white, on_only)
         return root if root.separation > _ROOT_MARGIN * linear.separation else linear
 
     def _lit(self, bits: np.ndarray) -> np.ndarray:
