@@ -100,12 +100,11 @@ rounds) and kept within this share of the way from the black to the white refere
 of nearly one colour has no second cluster to find."""
 _DARK_TAIL = 3.0
 _LEAST_TAIL = 0.05
-"""An ON-only frame whose lit cells spread more than its dark ones has its threshold at most
-``_DARK_TAIL`` dark tails above the dark cells' median (``_dark_cap``); a tail counts as at least
-``_LEAST_TAIL`` of the ring's contrast. Any of 2.5-4 and 0.02-0.05 read the suite's frames
-alike."""
-_MIN_CLUSTER_CELLS = 5
-"""Clusters of fewer cells than this show no tail: the two-means threshold stands."""
+"""An ON-only frame's threshold lies at most ``_DARK_TAIL`` times its dark cells' tail (their 90th
+percentile less their median, at least ``_LEAST_TAIL`` of the ring's contrast) above their
+median (``_dark_cap``). Any of 2.5-4 and 0.02-0.05 read the suite's frames alike."""
+_MIN_DARK_CELLS = 5
+"""Fewer dark cells than this show no tail: the midway threshold stands."""
 _ROOT_MARGIN = 1.2
 """``fast`` splits on the square root of its densities only where that separates the clusters
 this much better than the linear scale: a capped readout's unequal polarities give 1.1-2.3
@@ -365,28 +364,20 @@ def _two_means(x: np.ndarray, dark: float, bright: float) -> float:
 
 
 def _dark_cap(x: np.ndarray, threshold: float, contrast: float) -> float:
-    """``threshold`` of the sorted values ``x``, lowered towards the dark cells below it where
-    the lit cells above it spread more than they do (each cluster's tail: the dark cells' 90th
-    percentile less their median, the lit cells' median less their 10th percentile).
+    """The highest threshold the dark cells below ``threshold`` of the sorted values ``x`` leave
+    an ON-only frame (``_DARK_TAIL``).
 
-    A dark cell's pixels fire no ON burst of their own, only what lit neighbours spill and
-    motion sweeps in, so an ON-only frame's dark cells bunch near zero. Lit cells spread with
-    how strongly each pixel answers its switch: a cell lit in the frame before, on an LCD
-    whose fall outlasts the blank refresh, starts from grey and can fire half as often, and a
-    midway threshold reads many of those as dark. At 4-5 px per cell it is the other way
-    round: every lit cell fires, and a dark one can hold one of its few inner pixels lit from a
-    neighbour, so the midway threshold stands. Tails, not MADs: most dark cells hold no burst
-    at all, which leaves their MAD 0."""
-    k = int(np.searchsorted(x, threshold, side="right"))
-    if min(k, len(x) - k) < _MIN_CLUSTER_CELLS:
+    A dark cell's pixels fire no ON burst of their own: only what lit neighbours spill into it
+    and what motion sweeps over it, so the dark cells bunch near zero. Lit cells spread with how
+    strongly each pixel answers its switch: a cell lit in the frame before, on an LCD whose fall
+    outlasts the blank refresh, starts from grey and fires half as often, and a midway
+    threshold reads many of those as dark. The dark cells' tail, not their MAD, gives their
+    spread: most of them hold no burst at all."""
+    dark = x[: int(np.searchsorted(x, threshold, side="right"))]
+    if len(dark) < _MIN_DARK_CELLS:
         return threshold
-    dark_median, dark_q90 = np.percentile(x[:k], (50, 90))
-    lit_q10, lit_median = np.percentile(x[k:], (10, 50))
-    least = _LEAST_TAIL * contrast
-    dark_tail, lit_tail = max(dark_q90 - dark_median, least), max(lit_median - lit_q10, least)
-    if lit_tail <= dark_tail:
-        return threshold
-    return float(min(threshold, dark_median + _DARK_TAIL * dark_tail))
+    median, q90 = np.percentile(dark, (50, 90))
+    return float(median + _DARK_TAIL * max(q90 - median, _LEAST_TAIL * contrast))
 
 
 def cell_side_px(config: ReceiverConfig, T_cam_world: np.ndarray) -> float:
@@ -465,7 +456,7 @@ def _split_levels(
     levels: np.ndarray, ring_cells: np.ndarray, ring_white: np.ndarray, on_only: bool
 ) -> _Split:
     """The payload of (n, n) ``levels`` split at the threshold between its own two clusters
-    (``_two_means``; ``on_only``: lowered where the lit cells spread more, ``_dark_cap``), kept
+    (``_two_means``; ``on_only``: no higher than its dark cells allow, ``_dark_cap``), kept
     within ``_SPLIT_RANGE`` of the way from the ring's black cells' median to its white
     cells'."""
     white_ref, black_ref = _ring_references(levels[ring_cells[:, 1], ring_cells[:, 0]], ring_white)
@@ -475,7 +466,7 @@ def _split_levels(
     x = np.sort(payload, axis=None)
     threshold = _two_means(x, black_ref, white_ref)
     if on_only:
-        threshold = _dark_cap(x, threshold, contrast)
+        threshold = min(threshold, _dark_cap(x, threshold, contrast))
     threshold = min(max(threshold, lo), hi)
     k = int(np.searchsorted(x, threshold, side="right"))  # read 0: value <= threshold
     zeros, ones = x[:k], x[k:]
