@@ -226,8 +226,7 @@ class DecoderParams:
     """Consecutive frames without the inner locator before tracking counts as lost."""
     min_locator_score: float = 0.3
     sure_contrast: float = 1 / 2
-    """A cell this share of the contrast away from a midway threshold has full confidence (from
-    one nearer a reference, its side's share of the way scales alike): wide, so
+    """A cell this share of the contrast away from the threshold has full confidence: wide, so
     that the confidences rank the cells for the Reed-Solomon decoder's extra erasures
     (``FrameCodec.decode``). The framed profiles erase outright only below 1/32 of it
     (``LinkProfile.erasure_below``), a 64th of the contrast, and only where a codeword's bits

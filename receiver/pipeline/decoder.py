@@ -98,13 +98,6 @@ _SPLIT_RANGE = (0.25, 0.75)
 """The payload threshold is fitted to the payload's own densities (two-means, ``_SPLIT_ROUNDS``
 rounds) and kept within this share of the way from the black to the white reference: a frame
 of nearly one colour has no second cluster to find."""
-_DARK_TAIL = 3.0
-_LEAST_TAIL = 0.05
-"""An ON-only frame's threshold lies at most ``_DARK_TAIL`` times its dark cells' tail (their 90th
-percentile less their median, at least ``_LEAST_TAIL`` of the ring's contrast) above their
-median (``_dark_cap``). Any of 2.5-4 and 0.02-0.05 read the suite's frames alike."""
-_MIN_DARK_CELLS = 5
-"""Fewer dark cells than this show no tail: the midway threshold stands."""
 _ROOT_MARGIN = 1.2
 """``fast`` splits on the square root of its densities only where that separates the clusters
 this much better than the linear scale: a capped readout's unequal polarities give 1.1-2.3
@@ -363,23 +356,6 @@ def _two_means(x: np.ndarray, dark: float, bright: float) -> float:
     return 0.5 * (dark + bright)
 
 
-def _dark_cap(x: np.ndarray, threshold: float, contrast: float) -> float:
-    """The highest threshold the dark cells below ``threshold`` of the sorted values ``x`` leave
-    an ON-only frame (``_DARK_TAIL``).
-
-    A dark cell's pixels fire no ON burst of their own: only what lit neighbours spill into it
-    and what motion sweeps over it, so the dark cells bunch near zero. Lit cells spread with how
-    strongly each pixel answers its switch: a cell lit in the frame before, on an LCD whose fall
-    outlasts the blank refresh, starts from grey and fires half as often, and a midway
-    threshold reads many of those as dark. The dark cells' tail, not their MAD, gives their
-    spread: most of them hold no burst at all."""
-    dark = x[: int(np.searchsorted(x, threshold, side="right"))]
-    if len(dark) < _MIN_DARK_CELLS:
-        return threshold
-    median, q90 = np.percentile(dark, (50, 90))
-    return float(median + _DARK_TAIL * max(q90 - median, _LEAST_TAIL * contrast))
-
-
 def cell_side_px(config: ReceiverConfig, T_cam_world: np.ndarray) -> float:
     """The shortest side of a cell seen from this pose, in pixels (0 if it does not project)."""
     geo = config.geometry
@@ -452,22 +428,16 @@ def _ring_references(ring: np.ndarray, ring_white: np.ndarray) -> tuple[float, f
     return float(np.median(ring[ring_white])), float(np.median(ring[~ring_white]))
 
 
-def _split_levels(
-    levels: np.ndarray, ring_cells: np.ndarray, ring_white: np.ndarray, on_only: bool
-) -> _Split:
+def _split_levels(levels: np.ndarray, ring_cells: np.ndarray, ring_white: np.ndarray) -> _Split:
     """The payload of (n, n) ``levels`` split at the threshold between its own two clusters
-    (``_two_means``; ``on_only``: no higher than its dark cells allow, ``_dark_cap``), kept
-    within ``_SPLIT_RANGE`` of the way from the ring's black cells' median to its white
-    cells'."""
+    (``_two_means``), kept within ``_SPLIT_RANGE`` of the way from the ring's black cells'
+    median to its white cells'."""
     white_ref, black_ref = _ring_references(levels[ring_cells[:, 1], ring_cells[:, 0]], ring_white)
     payload = levels[1:-1, 1:-1]
     contrast = max(white_ref - black_ref, 1e-9)
     lo, hi = (black_ref + share * contrast for share in _SPLIT_RANGE)
     x = np.sort(payload, axis=None)
-    threshold = _two_means(x, black_ref, white_ref)
-    if on_only:
-        threshold = min(threshold, _dark_cap(x, threshold, contrast))
-    threshold = min(max(threshold, lo), hi)
+    threshold = min(max(_two_means(x, black_ref, white_ref), lo), hi)
     k = int(np.searchsorted(x, threshold, side="right"))  # read 0: value <= threshold
     zeros, ones = x[:k], x[k:]
     separation = 0.0
@@ -722,14 +692,7 @@ class CellReader:
         for _ in range(2):  # the second pass fits the spill on the bits the first corrected
             split = self._split(_less_spill(raw, self._lit(bits)))
             bits = split.bits
-        # Each side's distance to its reference: a threshold near the dark cells (``_dark_cap``)
-        # leaves them a short way to full confidence, the lit ones a long one.
-        reach = np.where(
-            split.payload > split.threshold,
-            split.white_ref - split.threshold,
-            split.threshold - split.black_ref,
-        )
-        sure = 2 * self.config.decoder.sure_contrast * np.maximum(reach, 1e-9)
+        sure = self.config.decoder.sure_contrast * max(split.white_ref - split.black_ref, 1e-9)
         confidence = np.clip(np.abs(split.payload - split.threshold) / sure, 0.0, 1.0)
         return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
 
@@ -747,11 +710,10 @@ class CellReader:
         count's noise is the same at any rate); where the toggled cells all fire and the
         untoggled ones spread instead (blur lights a dark cell from its toggling neighbours),
         it widens the untoggled ones' spread, and the linear scale separates better."""
-        cells, white, on_only = self._ring_cells, self._ring_white, self._on_only
-        linear = _split_levels(density, cells, white, on_only)
-        if on_only:
+        linear = _split_levels(density, self._ring_cells, self._ring_white)
+        if not self.both_polarities:
             return linear
-        root = _split_levels(np.sqrt(np.maximum(density, 0.0)), cells, white, on_only)
+        root = _split_levels(np.sqrt(np.maximum(density, 0.0)), self._ring_cells, self._ring_white)
         return root if root.separation > _ROOT_MARGIN * linear.separation else linear
 
     def _lit(self, bits: np.ndarray) -> np.ndarray:
