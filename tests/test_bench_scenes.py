@@ -333,10 +333,10 @@ def test_a_still_lock_on_a_drifting_camera_is_right_from_its_first_pose():
 @pytest.mark.parametrize(
     "index",
     [
-        # `robust`, still, 12.7 px per cell: a detection that took the camera for moving, its
-        # grid two thirds of a cell off at the corners. Its next frame read the locator at 0.30,
-        # below what a moving lock needs, and passed its CRC: Reed-Solomon corrected the 3% of
-        # cells the shifted grid misread.
+        # `robust`, still, 12.7 px per cell: a burst detection takes the camera for moving, its
+        # grid two thirds of a cell off at the corners. Under a threshold nearer the dark cells
+        # (tried and dropped) its next frame read the locator at 0.30, below what a moving lock
+        # needs, and passed its CRC: Reed-Solomon corrected the 3% of cells it misread.
         114,
         # `fast`, still, 1.4 px of blur at 6.8 px per cell: toggling cells light the locator's
         # dark ones, so right frames read it at 0.18-0.30 and pass their CRC.
