@@ -165,27 +165,37 @@ def read_published(daemon: subprocess.Popen, count: int) -> list[int]:
     return [int(daemon.stdout.readline()) for _ in range(count)]
 
 
+def read_rest_after_kill(daemon: subprocess.Popen) -> list[int]:
+    """Every number the killed daemon printed whole: each one was in its spool before the kill."""
+    return [
+        int(line) for line in daemon.stdout.read().splitlines(keepends=True) if line.endswith("\n")
+    ]
+
+
 def test_daemon_killed_and_restarted_keeps_server_state_and_its_spool(serve_app, tmp_path) -> None:
     base_url, app = serve_app(token=TOKEN)
     ws_url, out = "ws" + base_url.removeprefix("http"), tmp_path / "daemon"
 
+    def stored() -> set[str]:
+        return {r.name for r in app.state.live.receptions.receptions(1000)}
+
     first = start_daemon(ws_url, out, first=0)
     published = read_published(first, 15)
-    first.send_signal(signal.SIGKILL)  # mid-stream: some of these may not be acknowledged yet
+    # A loaded machine may take longer than those 15 messages to connect: the kill waits for the
+    # first delivery, and still lands mid-stream, as the daemon publishes for 20 s.
+    wait_until(lambda: bool(stored()), what="a first message to be stored")
+    first.send_signal(signal.SIGKILL)  # some of its messages are not acknowledged yet
     first.wait(10)
+    published += read_rest_after_kill(first)
     first.stdout.close()
-    stored_before = {r.name for r in app.state.live.receptions.receptions(1000)}
-    assert stored_before, "some messages were delivered before the kill"
+    stored_before = stored()
 
     second = start_daemon(ws_url, out, first=1000)
     try:
         published += read_published(second, 5)
         expected = {f"m{i}.txt" for i in published}
 
-        def all_stored() -> bool:
-            return expected <= {r.name for r in app.state.live.receptions.receptions(1000)}
-
-        wait_until(all_stored, what="every published message to be stored")
+        wait_until(lambda: expected <= stored(), what="every published message to be stored")
     finally:
         second.send_signal(signal.SIGKILL)
         second.wait(10)
