@@ -182,7 +182,7 @@ def test_while_it_cannot_lock_the_dashboard_says_what_the_camera_sees(serve_app,
         )
         expect(sight).to_have_attribute("data-state", "behind")
         locked = cannot_lock().model_copy(
-            update={"px_per_cell": 9.0, "detection_failure": None, "state": "tracking"}
+            update={"px_per_cell": 9.0, "detection_failure": None, "state": TrackingState.TRACKING}
         )
         send(ws, locked)
         expect(sight).to_have_text("camera sees ~9.0 px per cell")
