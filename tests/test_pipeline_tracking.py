@@ -18,7 +18,7 @@ from eventocc.receiver.pipeline import tracker as tracker_module
 from eventocc.receiver.pipeline.buffer import to_columns
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.decoder import cell_side_px
-from eventocc.receiver.pipeline.detector import ring_support
+from eventocc.receiver.pipeline.detector import detect, recheck_still, ring_support
 from eventocc.receiver.pipeline.metrics import pose_errors
 from eventocc.receiver.pipeline.pose import plane_homography, pnp, project_ideal
 from eventocc.receiver.pipeline.receiver import (
@@ -412,6 +412,33 @@ def test_a_still_lock_on_outline_corners_is_verified_after_its_recheck(
         assert not verified[t < recheck].any()
 
 
+def test_a_recheck_reads_the_corners_from_its_window_not_from_the_held_ones(tmp_path):
+    # A still lock's recheck skips the blink search and takes its region from the held corners;
+    # the corners it returns must still be the window's own, as the full still path finds them.
+    view = _view(tilt=10, roll=20)
+    scene = Scene(
+        encoder=StreamEncoder(MESSAGE, profile="robust", cells=16),
+        marker_size_m=SIZE,
+        display=Display(refresh_hz=60.0),
+        camera=CAMERA,
+        motion=_tum(tmp_path, [(0.0, view), (0.3, view)]),
+        sensor=SensorModel.preset("gen4-indoor"),
+        seed=0,
+    )
+    chunks = [c for c in simulate(scene, duration_s=0.3, chunk_us=10_000) if len(c)]
+    end = int(chunks[-1]["t"][-1])
+    window = [c for c in chunks if c["t"][0] >= end - CONFIG.detector.window_us]
+    found = detect(window, CONFIG)
+    assert found.refined and not found.moving
+    side = cell_side_px(CONFIG, found.T_cam_world)
+    rng = np.random.default_rng(1)
+    for off in (0.0, 1.0, side / 3):  # held corners off by up to a third of a cell
+        held = found.corners_px + rng.uniform(-off, off, (4, 2))
+        again = recheck_still(window, CONFIG, held)
+        assert again.refined
+        np.testing.assert_allclose(again.corners_px, found.corners_px, atol=0.05)
+
+
 def test_marker_leaving_the_view_is_lost_then_reacquired_and_the_message_completes(tmp_path):
     home, away = _view(tilt=3), _view(tilt=3, shift=(0.6, 0.0))  # 0.6 m sideways: out of view
     keys = [(0.0, home), (0.62, home), (0.64, away), (0.9, away), (0.92, home), (2.2, home)]
@@ -497,20 +524,17 @@ def test_a_still_lock_takes_its_pose_again_from_a_fresh_window(
     # have mixed the first frames with what came before). Here the readings after the lock's
     # are the true one moved sideways: within half a cell of the held pose they replace it; a
     # cell away they are another lock's and are left.
-    real, locked = receiver_module.detect, []
+    real = receiver_module.recheck_still
 
-    def moved(parts, config):
-        found = real(parts, config)
-        if not locked:  # the lock's own detection
-            locked.append(found)
-            return found
+    def moved(parts, config, held_px):
+        found = real(parts, config, held_px)
         step = np.array([shift_cells * cell_side_px(config, found.T_cam_world), 0.0])
         corners = found.corners_px + step
         world = config.geometry.locator_corners(config.marker_size_m)
         T = pnp(corners, world, config.camera)
         return replace(found, corners_px=corners, T_cam_world=T)
 
-    monkeypatch.setattr(receiver_module, "detect", moved)
+    monkeypatch.setattr(receiver_module, "recheck_still", moved)
     log, _ = _run(tmp_path, [(0.0, _view(tilt=10)), (0.5, _view(tilt=10))], 0.5)
     t, poses = np.array(log.pose_t), np.array(log.poses)
     lock = log.receiver.stats.lock_times_us[0]

@@ -554,7 +554,47 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
             f"temporal: the blinking region's period does not match {config.blink_hz:g} Hz "
             f"(mean match {match:.2f}); check --refresh-hz and --profile"
         )
-    band = locator_band(mask, config.geometry.locator_side)
+    return _still_in_region(parts, config, mask)
+
+
+_HELD_PAD_CELLS = 0.5
+"""How far a recheck's region reaches beyond the held locator's outline, in cells: beyond
+the blur of the ring's outer pixels, so that the phase-locked image is not clipped."""
+
+
+def recheck_still(
+    parts: list[np.ndarray], config: ReceiverConfig, held_px: np.ndarray
+) -> Detection:
+    """The still path on the region of a lock's held locator corners ``held_px`` (4, 2),
+    without searching for it: a still lock's recheck, which the blink's heat map and period
+    check (about half the path's CPU) would only find again where the lock stands. The
+    locator band is the held ring's."""
+    cam, side = config.camera, config.geometry.locator_side
+    cell_px = np.hypot(*(held_px - np.roll(held_px, 1, axis=0)).T).mean() / side
+
+    def region(pad_px: float) -> np.ndarray:
+        inward = held_px.mean(axis=0) - held_px
+        corners = held_px - pad_px * inward / np.linalg.norm(inward, axis=1, keepdims=True)
+        mask = np.zeros((cam.height, cam.width), np.uint8)
+        cv2.fillConvexPoly(mask, np.round(corners).astype(np.int32), 1)
+        return mask
+
+    band = locator_band(region(1.0), side)
+    return _still_in_region(parts, config, region(_HELD_PAD_CELLS * cell_px), band)
+
+
+def _still_in_region(
+    parts: list[np.ndarray],
+    config: ReceiverConfig,
+    mask: np.ndarray,
+    band: np.ndarray | None = None,
+) -> Detection:
+    """The still path inside the blinking region ``mask``: the locator band's phase (``band``,
+    by default the region's outer cell), the phase-locked image, its quadrilateral read the
+    way the 'L' stands, refined to its edges."""
+    params, cam = config.detector, config.camera
+    if band is None:
+        band = locator_band(mask, config.geometry.locator_side)
     rising = np.concatenate([_rising_times(p["t"], p["x"], p["y"], p["p"], band) for p in parts])
     t_start, t_end = int(parts[0]["t"][0]), int(parts[-1]["t"][-1])
     window = t_end - t_start

@@ -57,7 +57,13 @@ from eventocc.receiver.pipeline.decoder import (
     on_events_per_pixel,
     read_stride,
 )
-from eventocc.receiver.pipeline.detector import Detection, MarkerNotFound, detect, nearest_turn
+from eventocc.receiver.pipeline.detector import (
+    Detection,
+    MarkerNotFound,
+    detect,
+    nearest_turn,
+    recheck_still,
+)
 from eventocc.receiver.pipeline.filters import EventFilter
 from eventocc.receiver.pipeline.pose import PoseHistory, pnp, project_ideal
 from eventocc.receiver.pipeline.smoothing import PoseSmoother
@@ -553,16 +559,17 @@ class Receiver:
             track.updates_seen = self.stats.pose_updates
             track.rechecked.clear()
             return []
-        with self._cpu("detect"):
-            try:
-                found = detect(self._buffer.parts_between(now - q.window_us, now), self.config)
-            except MarkerNotFound:
-                return []
-        if found.moving or not found.refined:
-            return []
         geo, cam, T = self.config.geometry, self.config.camera, track.tracker.T_cam_world
         world = geo.locator_corners(self.config.marker_size_m)
         held = cam.project(world @ T[:3, :3].T + T[:3, 3])
+        with self._cpu("detect"):
+            try:
+                parts = self._buffer.parts_between(now - q.window_us, now)
+                found = recheck_still(parts, self.config, held)
+            except MarkerNotFound:
+                return []
+        if not found.refined:
+            return []
         if np.abs(found.corners_px - held).max() > 0.5 * cell_side_px(self.config, T):
             return []
         track.rechecked.append(found.corners_px)
