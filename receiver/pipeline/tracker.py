@@ -141,11 +141,33 @@ def edge_polarities(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarra
     An edge moving towards its dark side brightens its pixels. The white ring is the bright side
     of its outer edges and the dark gap inside it the dark side of its inner ones. Edges moving
     along themselves (under a quarter of the flow across them) are unknown."""
-    normal = _unit_normals(a, b)
-    normal *= np.sign(np.sum(((a + b) / 2 - a.mean(axis=0)) * normal, axis=1))[:, None]
-    across = np.sum(normal * flow, axis=-1)  # outwards
-    known = np.abs(across) >= 0.25 * np.linalg.norm(flow, axis=-1)
-    return np.where(known, np.sign(across), 0.0) * np.repeat([1.0, -1.0], 4)
+    flow = np.atleast_2d(np.asarray(flow, np.float64))
+    return _polarities(np.asarray(a, np.float64), np.asarray(b, np.float64), flow)[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _polarities(a, b, flow):
+    """``edge_polarities``, and each edge's speed across itself (|flow . normal|), with ``flow``
+    (1, 2) or (8, 2). Compiled: the tracker asks at every pose update, where the dozens of
+    small array operations it would take cost as much as the update's own fit."""
+    n = a.shape[0]
+    cx, cy = 0.0, 0.0
+    for i in range(n):
+        cx += a[i, 0] / n
+        cy += a[i, 1] / n
+    polarity, speed = np.zeros(n), np.zeros(n)
+    for i in range(n):
+        nx, ny = b[i, 1] - a[i, 1], a[i, 0] - b[i, 0]
+        length = np.hypot(nx, ny)
+        nx, ny = nx / length, ny / length
+        if nx * (0.5 * (a[i, 0] + b[i, 0]) - cx) + ny * (0.5 * (a[i, 1] + b[i, 1]) - cy) < 0:
+            nx, ny = -nx, -ny  # outwards
+        f = flow[i if flow.shape[0] > 1 else 0]
+        across = nx * f[0] + ny * f[1]
+        speed[i] = abs(across)
+        if speed[i] >= 0.25 * np.hypot(f[0], f[1]):
+            polarity[i] = np.sign(across) * (1.0 if i < n // 2 else -1.0)
+    return polarity, speed
 
 
 @numba.njit(cache=True, nogil=True)
@@ -634,12 +656,11 @@ class EdgeTracker:
         error (fitted to poses that jitter between tilt and shift) can turn its sign. The inner
         edges are not judged: the blinking locator, a ring width inside, fires both ways within
         their gates when the ring is thin."""
-        a, b = self._a, self._b
         velocity = 0.5 * (self._va + self._vb) * 1e3  # px/ms, each edge's middle
-        across = np.abs(np.sum(velocity * _unit_normals(a, b), axis=1))
+        polarity, across = _polarities(self._a, self._b, velocity)
         swept = across >= max(self.config.tracker.polarity_sweep_px_per_ms, 0.5 * across.max())
         swept[4:] = False
-        return np.where(swept, edge_polarities(a, b, velocity), 0).astype(np.int64)
+        return np.where(swept, polarity, 0).astype(np.int64)
 
     def silent_edges(self, supported: np.ndarray) -> int:
         """Outer edges that hold no fresh events (``supported``: per edge) although the image
