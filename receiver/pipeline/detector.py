@@ -487,12 +487,28 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
             misses.append(miss)
             continue
         if found is not None and found.oriented:
-            return found
+            return _sharper_if_still(found, parts, config)
         unoriented = unoriented or found
     if unoriented is not None:
         return unoriented
     misses[0].cell_px = cell_px
     raise misses[0]  # the preferred path's reason
+
+
+def _sharper_if_still(found: Detection, parts: list[np.ndarray], config: ReceiverConfig):
+    """``found``, or the still path's detection where ``found`` is a burst's that reads the 'L'
+    less clearly than a still marker shows it (``min_still_orientation_score``) and the still
+    path reads it more clearly. A still camera's noise can fake a flow of several px/ms whose
+    compensated burst still shows a faint 'L', and a lock on it fails its checks where the still
+    path's would stand. Under motion the still path's phase-locked image smears, and it fails or
+    reads the 'L' fainter."""
+    if not found.moving or found.orientation_score >= config.detector.min_still_orientation_score:
+        return found
+    try:
+        still = _detect_still(parts, config)
+    except MarkerNotFound:
+        return found
+    return still if still.orientation_score > found.orientation_score else found
 
 
 def bin_factor(cell_px: float, config: ReceiverConfig) -> int:
