@@ -561,3 +561,39 @@ def test_detection_prefers_a_path_that_reads_the_l(monkeypatch):
     assert detector.detect(events, config) is still
     monkeypatch.setattr(detector, "_detect_still", miss)
     assert detector.detect(events, config) is unoriented
+
+
+@pytest.mark.parametrize(
+    "moving_score, still_score, winner",
+    [(0.3, 0.9, "still"), (0.3, 0.2, "moving"), (0.3, None, "moving"), (0.7, 0.9, "moving")],
+)
+def test_a_burst_whose_l_reads_faintly_yields_to_a_sharper_still_reading(
+    monkeypatch, moving_score, still_score, winner
+):
+    # Noise on a still camera can fake a flow whose burst shows a faint 'L': the still path then
+    # decides, if it reads the 'L' more clearly. A burst that reads it as clearly as a still
+    # marker would stands without the still path running.
+    config = ReceiverConfig(CameraModel(64, 48, [[50, 0, 32], [0, 50, 24], [0, 0, 1]]))
+    region = detector.BlinkRegion(detector.Box(0, 0, 64, 48), 0.0, 1.0)
+    monkeypatch.setattr(detector, "blinking_region", lambda parts, config: region)
+    monkeypatch.setattr(detector, "latest_burst_us", lambda parts, burst, period: 50_000.0)
+    monkeypatch.setattr(detector, "burst_flow", lambda *args: np.array([10.0, 0.0]))
+    monkeypatch.setattr(detector, "region_cell_px", lambda region, config: 10.0)
+
+    def found(score: float, flow: tuple[float, float]) -> detector.Detection:
+        return detector.Detection(
+            np.zeros((4, 2)), np.eye(4), 0, 0.0, 30.0, 1.0, score, np.array(flow)
+        )
+
+    def still_path(*args):
+        if still_score is None:
+            raise detector.MarkerNotFound("temporal: the blinking region's period does not match")
+        return detections["still"]
+
+    detections = {"moving": found(moving_score, (10.0, 0.0))}
+    if still_score is not None:
+        detections["still"] = found(still_score, (0.0, 0.0))
+    monkeypatch.setattr(detector, "_detect_moving", lambda *args: detections["moving"])
+    monkeypatch.setattr(detector, "_detect_still", still_path)
+    events = make_events(np.arange(200) * 500, np.arange(200) % 64, np.arange(200) % 48, 1)
+    assert detector.detect(events, config) is detections[winner]
