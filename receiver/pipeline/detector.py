@@ -439,9 +439,7 @@ def burst_image(
 def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Detection:
     """Find the marker in ``events`` (a window of about ``detector.window_us``), given as one
     array or as its time-ordered parts (the receiver's buffered chunks, never copied)."""
-    parts = [p for p in ([events] if isinstance(events, np.ndarray) else events) if len(p)]
-    if sum(len(p) for p in parts) < 100:
-        raise MarkerNotFound("temporal: almost no events in the detection window")
+    parts = _window_parts(events)
     period = 1e6 / config.blink_hz
     try:
         region = blinking_region(parts, config)
@@ -509,6 +507,14 @@ def _sharper_if_still(found: Detection, parts: list[np.ndarray], config: Receive
     except MarkerNotFound:
         return found
     return still if still.orientation_score > found.orientation_score else found
+
+
+def _window_parts(events: np.ndarray | list[np.ndarray]) -> list[np.ndarray]:
+    """The non-empty parts of a detection window, which must hold a hundred events at least."""
+    parts = [p for p in ([events] if isinstance(events, np.ndarray) else events) if len(p)]
+    if sum(len(p) for p in parts) < 100:
+        raise MarkerNotFound("temporal: almost no events in the detection window")
+    return parts
 
 
 def bin_factor(cell_px: float, config: ReceiverConfig) -> int:
@@ -585,6 +591,7 @@ def recheck_still(
     without searching for it: a still lock's recheck, which the blink's heat map and period
     check (about half the path's CPU) would only find again where the lock stands. The
     locator band is the held ring's."""
+    parts = _window_parts(parts)
     cam, side = config.camera, config.geometry.locator_side
     cell_px = np.hypot(*(held_px - np.roll(held_px, 1, axis=0)).T).mean() / side
 
