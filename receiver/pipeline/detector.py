@@ -493,7 +493,9 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
     raise misses[0]  # the preferred path's reason
 
 
-def _sharper_if_still(found: Detection, parts: list[np.ndarray], config: ReceiverConfig):
+def _sharper_if_still(
+    found: Detection, parts: list[np.ndarray], config: ReceiverConfig
+) -> Detection:
     """``found``, or the still path's detection where ``found`` is a burst's that reads the 'L'
     less clearly than a still marker shows it (``min_still_orientation_score``) and the still
     path reads it more clearly. A still camera's noise can fake a flow of several px/ms whose
@@ -602,7 +604,7 @@ def recheck_still(
         cv2.fillConvexPoly(mask, np.round(corners).astype(np.int32), 1)
         return mask
 
-    band = locator_band(region(1.0), side)
+    band = locator_band(region(1.0), side)  # the held ring, blurred by a pixel
     return _still_in_region(parts, config, region(_HELD_PAD_CELLS * cell_px), band)
 
 
