@@ -533,16 +533,24 @@ def test_a_thinned_blink_is_timed_on_binned_pixels(refresh_hz, blinks):
     assert (_binned_period_match([ev], mask, config) >= least) == blinks
 
 
-def test_detection_prefers_a_path_that_reads_the_l(monkeypatch):
-    # A still camera's noise can fake a flow: the moving path's burst then shows no 'L'
-    # (``oriented`` false) where the still path reads it. The reading path wins; an unoriented
-    # detection stands only where no path reads the 'L'.
+def _blinking_everywhere(monkeypatch, flow_px_per_ms: float) -> tuple[ReceiverConfig, np.ndarray]:
+    """(config, events) for ``detect`` on a 64x48 camera whose whole view blinks, its burst
+    showing ``flow_px_per_ms`` sideways: the paths it tries are the test's to set."""
     config = ReceiverConfig(CameraModel(64, 48, [[50, 0, 32], [0, 50, 24], [0, 0, 1]]))
     region = detector.BlinkRegion(detector.Box(0, 0, 64, 48), 0.0, 1.0)
     monkeypatch.setattr(detector, "blinking_region", lambda parts, config: region)
     monkeypatch.setattr(detector, "latest_burst_us", lambda parts, burst, period: 50_000.0)
-    monkeypatch.setattr(detector, "burst_flow", lambda *args: np.array([0.1, 0.0]))
+    monkeypatch.setattr(detector, "burst_flow", lambda *args: np.array([flow_px_per_ms, 0.0]))
     monkeypatch.setattr(detector, "region_cell_px", lambda region, config: 10.0)
+    events = make_events(np.arange(200) * 500, np.arange(200) % 64, np.arange(200) % 48, 1)
+    return config, events
+
+
+def test_detection_prefers_a_path_that_reads_the_l(monkeypatch):
+    # A still camera's noise can fake a flow: the moving path's burst then shows no 'L'
+    # (``oriented`` false) where the still path reads it. The reading path wins; an unoriented
+    # detection stands only where no path reads the 'L'.
+    config, events = _blinking_everywhere(monkeypatch, 0.1)
 
     def found(oriented: bool) -> detector.Detection:
         return detector.Detection(
@@ -557,7 +565,6 @@ def test_detection_prefers_a_path_that_reads_the_l(monkeypatch):
     monkeypatch.setattr(detector, "_detect_densest", miss)
     monkeypatch.setattr(detector, "_detect_slow", miss)
     monkeypatch.setattr(detector, "_detect_still", lambda *args: still)
-    events = make_events(np.arange(200) * 500, np.arange(200) % 64, np.arange(200) % 48, 1)
     assert detector.detect(events, config) is still
     monkeypatch.setattr(detector, "_detect_still", miss)
     assert detector.detect(events, config) is unoriented
@@ -573,12 +580,7 @@ def test_a_burst_whose_l_reads_faintly_yields_to_a_sharper_still_reading(
     # Noise on a still camera can fake a flow whose burst shows a faint 'L': the still path then
     # decides, if it reads the 'L' more clearly. A burst that reads it as clearly as a still
     # marker would stands without the still path running.
-    config = ReceiverConfig(CameraModel(64, 48, [[50, 0, 32], [0, 50, 24], [0, 0, 1]]))
-    region = detector.BlinkRegion(detector.Box(0, 0, 64, 48), 0.0, 1.0)
-    monkeypatch.setattr(detector, "blinking_region", lambda parts, config: region)
-    monkeypatch.setattr(detector, "latest_burst_us", lambda parts, burst, period: 50_000.0)
-    monkeypatch.setattr(detector, "burst_flow", lambda *args: np.array([10.0, 0.0]))
-    monkeypatch.setattr(detector, "region_cell_px", lambda region, config: 10.0)
+    config, events = _blinking_everywhere(monkeypatch, 10.0)
 
     def found(score: float, flow: tuple[float, float]) -> detector.Detection:
         return detector.Detection(
@@ -595,5 +597,4 @@ def test_a_burst_whose_l_reads_faintly_yields_to_a_sharper_still_reading(
         detections["still"] = found(still_score, (0.0, 0.0))
     monkeypatch.setattr(detector, "_detect_moving", lambda *args: detections["moving"])
     monkeypatch.setattr(detector, "_detect_still", still_path)
-    events = make_events(np.arange(200) * 500, np.arange(200) % 64, np.arange(200) % 48, 1)
     assert detector.detect(events, config) is detections[winner]
