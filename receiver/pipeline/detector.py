@@ -79,7 +79,6 @@ from eventocc.receiver.pipeline.locate import (
 )
 from eventocc.receiver.pipeline.pose import pnp, project_ideal
 from eventocc.receiver.pipeline.tracker import (
-    REVERSED_AGREEMENT,
     EdgeTracker,
     _nearest_edge,
     edge_polarities,
@@ -106,6 +105,13 @@ _CAPTURE_SAMPLE = 30_000
 burst, and a pose of eight edges needs far fewer."""
 _ON_EDGE_PX = 1.0
 """An event within this distance of a projected ring edge counts as on it (capture scoring)."""
+_REVERSED_SIDE = -0.6
+"""A captured ring's outer side whose events agree with the burst's flow this badly or worse
+(``ring_support``) lies on an edge of the other sign, a ring width off: such sides read -0.8
+to -1. The tracker's own test (``tracker.REVERSED_AGREEMENT``) is stricter, as it judges each
+edge by its own velocity; a burst gives one flow for the whole marker, and where the camera
+also turns a side's own flow can be half of it, so a right fit's side reads its events mixed
+(down to -0.48 over the randomized suite's and the tracking paths' captures)."""
 
 
 _PHASE_STEPS = 512
@@ -842,7 +848,7 @@ def _detect_moving(
         config.camera.undistort_table,
     )
     T, agree, worst = _capture_ring(ring_events, quad, t_us, burst.flow, config)
-    if agree < params.min_edge_polarity or worst <= REVERSED_AGREEMENT:
+    if agree < params.min_edge_polarity or worst <= _REVERSED_SIDE:
         raise MarkerNotFound(
             f"spatial: the ring's edges fire against the motion at the fitted pose (polarity "
             f"agreement {agree:+.2f}, {worst:+.2f} on its worst side), as a fit a ring width "
@@ -863,9 +869,12 @@ def _detect_moving(
 def _capture_ring(
     events: EventColumns, quad: np.ndarray, t_us: int, flow: np.ndarray, config: ReceiverConfig
 ) -> tuple[np.ndarray, float, float]:
-    """The pose at ``t_us`` whose ring edges the most of ``events`` (those around ``t_us``) lie
-    on, preferring poses whose edges fire as the image ``flow`` makes them (``ring_support``),
-    and its polarity agreements (overall, the worst side's). Captures start at scaled copies
+    """The pose at ``t_us`` whose ring edges hold the most of ``events`` (those around ``t_us``)
+    net of those that fire against the image ``flow`` (their count on the edges times their
+    polarity agreement, ``ring_support``), among poses with no side reversed if there are any,
+    and its polarity agreements (overall, the worst side's). The count alone would prefer a
+    fit a cell or two off that takes in a few more of the smeared edges' events than the
+    right one while agreeing less (suite scenes 94-97). Captures start at scaled copies
     of the locator's quadrilateral (any rotation: the ring is square), and at the same a ring
     width smaller: the blob and the fitted square often take the ring's inner edge for the
     locator's outline. The quadrilateral itself and the one a ring width smaller also start a
@@ -881,19 +890,19 @@ def _capture_ring(
     for scale in (1.0, smaller):
         start = centre + scale * (quad - centre)
         starts += [start + step for step in (*sides, *-sides)]
-    best, best_key = None, None
+    best = None
     for start in starts:
         tracker = EdgeTracker(config, _solve_pnp(start, config), t_us)
         if not tracker.capture(xu, yu, t_us, (events["p"], flow)):
             continue
         on, agree, worst = ring_support(tracker.T_cam_world, events, flow, config)
-        sound = worst > REVERSED_AGREEMENT and agree >= config.detector.min_edge_polarity
-        key = (sound, on, agree, worst)
-        if best_key is None or key > best_key:
-            best, best_key = tracker.T_cam_world, key
+        sound = worst > _REVERSED_SIDE and agree >= config.detector.min_edge_polarity
+        key = (sound, on * agree, worst)
+        if best is None or key > best[0]:
+            best = key, (tracker.T_cam_world, agree, worst)
     if best is None:
         raise MarkerNotFound("spatial: too few ring-edge events around the burst to fit the ring")
-    return best, best_key[2], best_key[3]
+    return best[1]
 
 
 def ring_support(
