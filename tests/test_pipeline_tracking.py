@@ -18,7 +18,7 @@ from eventocc.receiver.pipeline import tracker as tracker_module
 from eventocc.receiver.pipeline.buffer import to_columns
 from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.decoder import cell_side_px
-from eventocc.receiver.pipeline.detector import detect, recheck_still, ring_support
+from eventocc.receiver.pipeline.detector import capture_rank, detect, recheck_still, ring_support
 from eventocc.receiver.pipeline.metrics import pose_errors
 from eventocc.receiver.pipeline.pose import plane_homography, pnp, project_ideal
 from eventocc.receiver.pipeline.receiver import (
@@ -239,9 +239,23 @@ def test_detection_finds_the_one_side_that_fires_against_the_flow():
         return ring_support(T, to_columns(events, CAMERA.undistort_table), flow, CONFIG)
 
     assert support(None)[2] >= 0.9
-    assert support(1)[2] <= tracker_module.REVERSED_AGREEMENT, "the outer right edge reversed"
+    assert support(1)[2] <= -0.9, "the outer right edge reversed"
+    assert capture_rank(*support(None), CONFIG)[0]
+    assert not capture_rank(*support(1), CONFIG)[0], "a fit with a side reversed ranks last"
     assert support(5)[2] >= 0.9, "an inner edge is not the worst side's judge"
     assert support(0)[2] >= 0.9, "the top edge slides along the flow: no evidence"
+
+
+def test_a_capture_ranks_by_its_edge_events_that_agree_with_the_flow():
+    # Captures logged in the randomized suite (scene 94, 1 px/ms) and bench.receiver's
+    # hand-held clip: (events on the edges, polarity agreement, worst side's agreement).
+    right, off = (4094, 0.99, 0.95), (4223, 0.75, 0.28)  # the latter 1.3 cells off
+    assert capture_rank(*right, CONFIG) > capture_rank(*off, CONFIG)
+    # The camera turning: against the burst's one flow a right fit's side read mixed, where a
+    # side a ring width off reads reversed.
+    turning, sound_off = (2620, 0.94, -0.48), (1997, 0.85, 0.79)  # the latter 1.1 cells off
+    assert capture_rank(*turning, CONFIG) > capture_rank(*sound_off, CONFIG)
+    assert not capture_rank(1614, 0.90, -0.95, CONFIG)[0]
 
 
 @pytest.mark.parametrize(

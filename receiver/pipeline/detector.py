@@ -869,12 +869,9 @@ def _detect_moving(
 def _capture_ring(
     events: EventColumns, quad: np.ndarray, t_us: int, flow: np.ndarray, config: ReceiverConfig
 ) -> tuple[np.ndarray, float, float]:
-    """The pose at ``t_us`` whose ring edges hold the most of ``events`` (those around ``t_us``)
-    net of those that fire against the image ``flow`` (their count on the edges times their
-    polarity agreement, ``ring_support``), among poses with no side reversed if there are any,
-    and its polarity agreements (overall, the worst side's). The count alone would prefer a
-    fit a cell or two off that takes in a few more of the smeared edges' events than the
-    right one while agreeing less (suite scenes 94-97). Captures start at scaled copies
+    """The best-ranked (``capture_rank``) pose at ``t_us`` fitted to the ring's edge events
+    among ``events`` (those around ``t_us``), and its polarity agreements with the image
+    ``flow`` (overall, the worst side's). Captures start at scaled copies
     of the locator's quadrilateral (any rotation: the ring is square), and at the same a ring
     width smaller: the blob and the fitted square often take the ring's inner edge for the
     locator's outline. The quadrilateral itself and the one a ring width smaller also start a
@@ -896,13 +893,23 @@ def _capture_ring(
         if not tracker.capture(xu, yu, t_us, (events["p"], flow)):
             continue
         on, agree, worst = ring_support(tracker.T_cam_world, events, flow, config)
-        sound = worst > _REVERSED_SIDE and agree >= config.detector.min_edge_polarity
-        key = (sound, on * agree, worst)
+        key = capture_rank(on, agree, worst, config)
         if best is None or key > best[0]:
             best = key, (tracker.T_cam_world, agree, worst)
     if best is None:
         raise MarkerNotFound("spatial: too few ring-edge events around the burst to fit the ring")
     return best[1]
+
+
+def capture_rank(
+    on: int, agree: float, worst: float, config: ReceiverConfig
+) -> tuple[bool, float, float]:
+    """How a ring capture ranks, from its ``ring_support``: first whether no side reads
+    reversed and the edges agree with the flow (``min_edge_polarity``), then its events on the
+    edges weighed by that agreement. The count alone would prefer a fit a cell or two off that
+    takes in a few more of the smeared edges' events than the right one while agreeing less."""
+    sound = worst > _REVERSED_SIDE and agree >= config.detector.min_edge_polarity
+    return sound, on * agree, worst
 
 
 def ring_support(
