@@ -869,9 +869,9 @@ def _detect_moving(
 def _capture_ring(
     events: EventColumns, quad: np.ndarray, t_us: int, flow: np.ndarray, config: ReceiverConfig
 ) -> tuple[np.ndarray, float, float]:
-    """The best-ranked (``capture_rank``) pose at ``t_us`` fitted to the ring's edge events
-    among ``events`` (those around ``t_us``), and its polarity agreements with the image
-    ``flow`` (overall, the worst side's). Captures start at scaled copies
+    """The pose at ``t_us`` whose ring edges the most of ``events`` (those around ``t_us``) lie
+    on, preferring poses whose edges fire as the image ``flow`` makes them (``capture_rank``),
+    and its polarity agreements (overall, the worst side's). Captures start at scaled copies
     of the locator's quadrilateral (any rotation: the ring is square), and at the same a ring
     width smaller: the blob and the fitted square often take the ring's inner edge for the
     locator's outline. The quadrilateral itself and the one a ring width smaller also start a
@@ -887,29 +887,27 @@ def _capture_ring(
     for scale in (1.0, smaller):
         start = centre + scale * (quad - centre)
         starts += [start + step for step in (*sides, *-sides)]
-    best = None
+    best, best_key = None, None
     for start in starts:
         tracker = EdgeTracker(config, _solve_pnp(start, config), t_us)
         if not tracker.capture(xu, yu, t_us, (events["p"], flow)):
             continue
-        on, agree, worst = ring_support(tracker.T_cam_world, events, flow, config)
-        key = capture_rank(on, agree, worst, config)
-        if best is None or key > best[0]:
-            best = key, (tracker.T_cam_world, agree, worst)
+        key = capture_rank(*ring_support(tracker.T_cam_world, events, flow, config), config)
+        if best_key is None or key > best_key:
+            best, best_key = tracker.T_cam_world, key
     if best is None:
         raise MarkerNotFound("spatial: too few ring-edge events around the burst to fit the ring")
-    return best[1]
+    return best, best_key[2], best_key[3]
 
 
 def capture_rank(
     on: int, agree: float, worst: float, config: ReceiverConfig
-) -> tuple[bool, float, float]:
+) -> tuple[bool, int, float, float]:
     """How a ring capture ranks, from its ``ring_support``: first whether no side reads
-    reversed and the edges agree with the flow (``min_edge_polarity``), then its events on the
-    edges weighed by that agreement. The count alone would prefer a fit a cell or two off that
-    takes in a few more of the smeared edges' events than the right one while agreeing less."""
+    reversed and the edges agree with the flow (``min_edge_polarity``), then its events on
+    the edges."""
     sound = worst > _REVERSED_SIDE and agree >= config.detector.min_edge_polarity
-    return sound, on * agree, worst
+    return sound, on, agree, worst
 
 
 def ring_support(
