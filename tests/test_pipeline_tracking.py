@@ -214,6 +214,12 @@ def test_paper_proof_needs_the_swept_edges_to_fire_with_the_motion():
     assert still.upright(0.5)
     still.turn_leads.append(0.3)
     assert not still.upright(0.5), "the 'L' read barely upright"
+    # Scene 98 of the randomized suite: a square a quarter turn off, read under 1.3 px/ms, leads
+    # by enough to go on tracking, not by enough to prove it.
+    still.turn_leads.extend([0.52, 0.60, 0.55])
+    q = CONFIG.decoder
+    assert np.median(still.turn_leads) >= q.min_turn_lead
+    assert not still.upright(q.min_proof_lead)
     moving = track(moving=True)
     moving.tracker.best_agreement = np.array([np.nan, 0.95, np.nan, 0.9, *[np.nan] * 4])
     assert moving.sides_agree(0.5, every_side=False)

@@ -247,6 +247,12 @@ class DecoderParams:
     counts as lost. A correct pose reads a lead of ~1.5 (hand-held at 0.5 px/ms); a pose a
     quarter turn off, or one whose ring fit is a ring width too large, reads ~0-0.6 although
     its ``locator_score`` (medians of the white and black cells) often reads 1."""
+    min_proof_lead: float = 0.8
+    """The lead each of the last ``turn_frames`` frames must read for ``paper``'s proof, which has
+    no CRC (``Track.upright``): stricter than ``min_turn_lead``, as a wrong pose that passes it
+    goes out verified. A square a quarter turn off read 0.52-0.60 in three frames in a row under
+    1.3 px/ms; right poses read the lead below 0.8 in 1.8% of the suite's ``paper`` frames (below
+    0.5 in 1.3%)."""
     read_px_per_cell: float | None = 7.0
     """Cells at least twice this wide (pixels, at the lock) are read from one pixel in every
     s x s block: s is the largest stride leaving this many pixels per cell side. A 1280x720

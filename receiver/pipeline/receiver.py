@@ -197,13 +197,13 @@ class Track:
         self.probation -= 1
         return self.probation == 0
 
-    def upright(self, min_turn_lead: float) -> bool:
-        """Whether each of the last ``turn_frames`` frames read the 'L' upright by
-        ``min_turn_lead``: ``paper``'s proof, as it has no check of its own, with
+    def upright(self, min_lead: float) -> bool:
+        """Whether each of the last ``turn_frames`` frames read the 'L' upright by ``min_lead``
+        (``min_proof_lead``): ``paper``'s proof, as it has no check of its own, with
         ``sides_agree``. One frame is not enough: under motion a pose a quarter turn off reads
         one now and then."""
         leads = self.turn_leads
-        return len(leads) == leads.maxlen and min(leads) >= min_turn_lead
+        return len(leads) == leads.maxlen and min(leads) >= min_lead
 
     def sides_agree(self, min_edge_agreement: float, every_side: bool) -> bool:
         """Whether the ring's swept outer edges last fired as the motion makes them, each
@@ -676,7 +676,7 @@ class Receiver:
             self.cell_px = cell_side_px(self.config, pose)
             if frame.payload_bits:
                 self._verified = (read.t_us, pose)
-            checked = frame.payload_bits or (not framed and track.upright(q.min_turn_lead))
+            checked = frame.payload_bits or (not framed and track.upright(q.min_proof_lead))
             first = track.proven_at_us is None
             agree = not first or track.sides_agree(q.min_edge_agreement, every_side=track.moving)
             if checked and agree:
