@@ -118,6 +118,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-write", action="store_true", help="print, do not write the doc")
     args = parser.parse_args(argv)
+    load = os.getloadavg()[0]  # the machine may be shared: say how busy it was
     with tempfile.TemporaryDirectory(prefix="eventocc-first-run-") as tmp:
         repo = clone(Path(tmp))
         install_s = install(repo)
@@ -140,8 +141,8 @@ def main(argv: list[str] | None = None) -> None:
     body = (
         "A fresh clone of HEAD, installed (`make .venv/.installed`) and started "
         "(`make demo`) as a new user would.\n\n| step | seconds |\n|---|---|\n"
-        f"{table}\n\nURLs to the sample verified: {verdict}. Other work shared the machine "
-        "while it ran."
+        f"{table}\n\nURLs to the sample verified: {verdict}. Machine load average {load:.1f} when "
+        f"it started, on {os.cpu_count()} cores."
     )
     print(body)
     if not args.no_write:
