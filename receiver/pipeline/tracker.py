@@ -126,13 +126,6 @@ def _nearest_edge(xu, yu, a, b, reach=np.inf):
     return dist, edge
 
 
-def _unit_normals(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(n, 2) unit normals of the segments ``a[i] -> b[i]``, in no particular orientation."""
-    along = b - a
-    normal = np.stack([along[:, 1], -along[:, 0]], axis=1)
-    return normal / np.linalg.norm(normal, axis=1, keepdims=True)
-
-
 def edge_polarities(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarray:
     """(8,) polarity (+1 ON, -1 OFF, 0 unknown) of the events that image ``flow`` (one (2,)
     for all, or (8, 2): each edge's own) fires on the ring's projected edges ``a[i] -> b[i]``
@@ -673,10 +666,8 @@ class EdgeTracker:
         silent = ~supported[:4] & supported[4:]
         if not silent.any():  # a tracked pose's usual case: skip the geometry (every update)
             return 0
-        a, b = self._a[:4], self._b[:4]
-        velocity = 0.5 * (self._va[:4] + self._vb[:4])
-        speed = np.abs(np.sum(velocity * _unit_normals(a, b), axis=1))
-        ends, cam = np.stack([a, b], 1), self.config.camera
+        speed = _polarities(self._a, self._b, 0.5 * (self._va + self._vb))[1][:4]
+        ends, cam = np.stack([self._a[:4], self._b[:4]], 1), self.config.camera
         inside = np.all((ends >= 0) & (ends < (cam.width, cam.height)), axis=(1, 2))
         sweep = self.config.tracker.silent_sweep_px_per_ms / 1e3  # px/us, as the velocity
         return int(np.count_nonzero(silent & (speed > sweep) & inside))
