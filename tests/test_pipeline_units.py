@@ -277,6 +277,26 @@ def test_an_event_of_the_other_polarity_ends_a_burst():
     assert triage.bursts(0, 1000, (0, 32, 0, 24))["t"].tolist() == [100]
 
 
+def test_a_burst_running_into_its_pixels_read_gate_ends_there():
+    """A pixel that the moving camera turned onto a fading cell's light fires ON before its own
+    cell switches on; with no OFF between, the switch would only continue that burst and go
+    unread. The gate's opening (a plane over the raw pixels) cuts the burst."""
+    events = make_events([100, 500, 900, 1300], [10] * 4, [4] * 4, [1, 1, 1, 1])
+    triage = _triage()
+    triage(events)
+    assert triage.bursts(0, 2000, (0, 32, 0, 24))["t"].tolist() == [100]
+    triage.reset(epoch_us=0)
+    triage.cut_plane = (700.0, 20.0, 0.0)  # the gate opens at x = 10 at 900 us
+    triage(events)
+    assert triage.bursts(0, 2000, (0, 32, 0, 24))["t"].tolist() == [100, 900]  # first, latest
+    triage.reset(epoch_us=0)
+    assert triage.cut_plane is None
+    both = _triage(both=True)  # ``fast`` reads both polarities and is never cut
+    both.cut_plane = (700.0, 20.0, 0.0)
+    both(events)
+    assert both.bursts(0, 2000, (0, 32, 0, 24))["t"].tolist() == [100]
+
+
 def test_triage_passes_only_events_near_the_tracked_edges():
     triage = _triage()
     events = make_events([1, 2, 3], [2, 30, 16], [2, 20, 2], [1, -1, 1])
@@ -331,6 +351,26 @@ def test_read_window_narrows_as_soon_as_one_frame_timed_the_clock(profile):
     reading = np.diff(reader.window(1))[0]
     assert reading == pytest.approx(np.diff(reader.gate)[0], abs=1)
     assert reading < 0.8 * searching
+
+
+def test_the_read_gate_opens_row_by_row_down_the_locator():
+    config = ReceiverConfig(CameraModel(346, 260, K), cells=16, profile="robust")
+    geo, size = config.geometry, config.marker_size_m
+    centre = geo.locator_corners(size).mean(axis=0)
+    facing = make_pose(np.eye(3), np.array([-centre[0], -centre[1], 0.5]))
+    reader = CellReader(config, first_burst_us=0.0)
+    assert reader.gate_opens(3, facing) is None  # no clock yet
+    for m in range(3):
+        reader.clock.observe(m, 100.0 + m * config.frame_us, slope_us=50.0)
+    assert reader.gate_opens(3, facing) is None  # the gate is not narrowed yet
+    reader.gate, reader._gate_fitted = (-400.0, 600.0), True
+    a, b, c = reader.gate_opens(3, facing)
+    n = geo.locator_side
+    for v in (0.5, n / 2, n - 0.5):  # row centres on the grid, then their pixels
+        plane = np.linalg.inv(reader._plane_to_grid) @ [n / 2, v, 1]
+        x, y = config.camera.project((facing[:3, :3] @ [*plane[:2], 0] + facing[:3, 3])[None])[0]
+        want = reader.clock.mid(3) + (v - 0.5 - n / 2) * 50.0 - 400.0
+        assert a + b * x + c * y == pytest.approx(want, abs=1.0)
 
 
 @pytest.mark.parametrize(

@@ -13,7 +13,7 @@ A still camera (the grid moved under ``_STILL_CELLS`` in the last few millisecon
 pose per frame and has each cell's inner pixels counted once, so a cell's share is exact. A
 moving one takes a pose every ``DecoderParams.step_us`` and divides by the cell's image area.
 
-Under hand-held motion four things keep the bits:
+Under hand-held motion five things keep the bits:
 
 - the gate narrows to the spread of the locator's own ON bursts (a few hundred microseconds),
   because a black cell that a white neighbour's image sweeps over fires later, not at the switch;
@@ -22,7 +22,10 @@ Under hand-held motion four things keep the bits:
 - the clock takes each locator row's densest span of bursts, not their median, because motion
   starts bursts on the white cells across the whole search gate;
 - the grid is shifted by the sub-cell offset that shows the locator ring sharpest, because the
-  tracked pose can sit a fraction of a cell off.
+  tracked pose can sit a fraction of a cell off;
+- ``paper`` and ``robust`` end a pixel's ON burst where its read gate opens, because a display
+  still fading from the frame before lets motion turn a pixel onto a lit cell's glow, and it
+  fires ON just before its own cell switches on (``EventTriage.cut_plane``).
 
 - ``paper`` / ``robust`` (data frame + blank frame): ON bursts only; a white cell lights up.
 - ``fast`` (one differential symbol per refresh): bursts of either polarity; a cell that toggles
@@ -146,6 +149,11 @@ class FrameClock:
     def timed(self) -> bool:
         """The clock has seen at least one frame's bursts (and with them the scan-out slope)."""
         return bool(self._seen)
+
+    @property
+    def settled(self) -> bool:
+        """The clock has fitted its period to the bursts of several frames."""
+        return len(self._seen) >= 3
 
     def observe(self, m: int, mid_us: float, slope_us: float) -> None:
         self.slope_us = slope_us if not self._seen else 0.7 * self.slope_us + 0.3 * slope_us
@@ -498,6 +506,25 @@ class CellReader:
         mid = self.clock.mid(m)
         lo, hi = self.gate if self.clock.timed else self._search_gate
         return int(mid - half + lo), int(mid + half + hi) + 1
+
+    def gate_opens(self, m: int, T_cam_world: np.ndarray) -> tuple[float, float, float] | None:
+        """(a, b, c): frame ``m``'s read gate opens at ``a + b * x + c * y`` at raw pixel (x, y)
+        near the locator seen from ``T_cam_world`` (``EventTriage.cut_plane``), fitted to its
+        rows' gate times over a grid of points on it; None until the gate has been narrowed
+        (``fast`` never) and the clock settled, since a gate opening inside a switch would cut
+        the switch's own bursts."""
+        if not (self._gate_fitted and self.clock.settled):
+            return None
+        n = self.n
+        u, v = (g.ravel() for g in np.meshgrid(*[np.linspace(0, n, 5)] * 2))
+        plane = np.c_[u, v, np.ones_like(u)] @ np.linalg.inv(self._plane_to_grid).T
+        points = np.c_[plane[:, :2], np.zeros(len(u))] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        if np.any(points[:, 2] <= 0):
+            return None
+        px = self.config.camera.project(points)
+        opens = self.clock.mid(m) + (v - 0.5 - n / 2) * self.clock.slope_us + self.gate[0]
+        (a, b, c), *_ = np.linalg.lstsq(np.c_[np.ones(len(u)), px], opens, rcond=None)
+        return float(a), float(b), float(c)
 
     def _rises(self, m: int) -> bool:
         """Whether the inner locator switches on in frame ``m`` (frame 0 is the detected burst;

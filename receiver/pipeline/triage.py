@@ -20,7 +20,11 @@ polarity: a cell switching fires its pixels several times within the display's r
 and the same pixel cannot switch the same way again for two refreshes (or a data frame and a
 blank one), unless motion sweeps an edge's image over it. At 6 px/ms the scan-out spreads a
 frame's bursts over ~10 ms, in which a white cell's pixel is often relit once or twice by its
-neighbours' images: the first burst is the display's switch, the latest one is not.
+neighbours' images: the first burst is the display's switch, the latest one is not. With ON
+events alone (``paper``, ``robust``) a burst also ends where its pixel's read gate opens
+(``EventTriage.cut_plane``): behind a display still fading from the frame before, motion turns a
+pixel onto a lit cell's glow in the blank refresh and it fires ON up to a few milliseconds before
+its own cell switches on, with no OFF event between.
 
 Cells much larger than the decoder needs (a 1280x720 camera close to an N = 16 marker sees 22 px
 per cell and ~140 M events a second) are read from a coarser surface: only the pixels on every
@@ -65,11 +69,13 @@ _BLOCK = 1024
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _burst(pixels, e, at, epoch, gap_us, mark, mark2):
+def _burst(pixels, e, at, epoch, gap_us, mark, mark2, cut):
     """Note event ``e`` in the burst times of its pixel, ``pixels[at]`` (ON only when the
     surface has one polarity): the latest burst's start and last event, and the first burst's
     start from ``mark`` on and from ``mark2`` on. An event of the other polarity ends a burst: a
-    moving edge darkens and relights a pixel well within ``gap_us``.
+    moving edge darkens and relights a pixel well within ``gap_us``. On the ON-only surface a
+    burst also ends where its pixel's read gate opens, ``cut`` = (a, b, c): at time
+    ``a + b * x + c * y`` (``EventTriage.cut_plane``).
 
     With both polarities (``fast``), a change of polarity starts a burst: each switch of a
     toggling cell reverses its pixels' polarity, while an OFF event long after the last (a
@@ -81,7 +87,12 @@ def _burst(pixels, e, at, epoch, gap_us, mark, mark2):
     ti = np.int32(e.t - epoch)
     if pixels.shape[1] == 1:
         if e.p > 0:
-            _note(pixels, at, 0, ti, ti - pixels[at, 0, 1] > gap_us, mark, mark2)
+            last = pixels[at, 0, 1]
+            starts = ti - last > gap_us
+            if not starts:
+                opens = cut[0] + cut[1] * e.x + cut[2] * e.y
+                starts = last < opens <= ti
+            _note(pixels, at, 0, ti, starts, mark, mark2)
         else:
             pixels[at, 0, 1] = _NEVER
     elif e.p > 0:
@@ -141,10 +152,10 @@ def _triage(events, bursts, grid, selection):
     every pixel is on it); return the columns (t, x, y, p) of the events on the marked
     ``tiles``, of every ``every``-th event from index ``first`` on (``first < every``: a call
     continuing another's thinning). ``rare``: few events lie on the marked tiles
-    (``_RARE_SHARE``). Three records: ``bursts`` = (pixels, epoch, gap_us, mark, mark2) (times
-    since ``epoch``), ``grid`` = (grid_y, grid_x, dense), ``selection`` = (tiles, every, first,
-    rare). Plain tuples, not NamedTuples: this runs per chunk, and building and typing those
-    costs a few microseconds a call.
+    (``_RARE_SHARE``). Three records: ``bursts`` = (pixels, epoch, gap_us, mark, mark2, cut)
+    (times since ``epoch``), ``grid`` = (grid_y, grid_x, dense), ``selection`` = (tiles,
+    every, first, rare). Plain tuples, not NamedTuples: this runs per chunk, and building and
+    typing those costs a few microseconds a call.
 
     ``events`` is the structured chunk itself: numba reads each record's fields in one go,
     faster than four strided field views. With a stride, whether an event lies on the grid is a
@@ -152,7 +163,7 @@ def _triage(events, bursts, grid, selection):
     first gathered without one. Each block's near-edge records are copied out while they are in
     the L1 cache, rather than after the whole chunk (as the dense pass does, whose picks are
     few)."""
-    pixels, epoch, gap_us, mark, mark2 = bursts
+    pixels, epoch, gap_us, mark, mark2, cut = bursts
     grid_y, grid_x, dense = grid
     tiles, every, first, rare = selection
     n = events.shape[0]
@@ -163,7 +174,7 @@ def _triage(events, bursts, grid, selection):
         width = grid_x.shape[0]
         for i in range(n):
             e = events[i]
-            _burst(pixels, e, np.int64(e.y) * width + e.x, epoch, gap_us, mark, mark2)
+            _burst(pixels, e, np.int64(e.y) * width + e.x, epoch, gap_us, mark, mark2, cut)
         picked = np.empty(size, np.int64)
         k = _pick(events, first, n, every, tiles, rare, picked, 0)
         k = _take(events, picked, k, t, x, y, p, 0)
@@ -180,7 +191,7 @@ def _triage(events, bursts, grid, selection):
             at[g] = grid_y[e.y] + grid_x[e.x]
             g += at[g] >= 0
         for j in range(g):
-            _burst(pixels, events[on_grid[j]], at[j], epoch, gap_us, mark, mark2)
+            _burst(pixels, events[on_grid[j]], at[j], epoch, gap_us, mark, mark2, cut)
         found = _pick(events, b0 + (first - b0) % every, b1, every, tiles, rare, picked, 0)
         k = _take(events, picked, found, t, x, y, p, k)
     return t[:k], x[:k], y[:k], p[:k]
@@ -317,6 +328,11 @@ class EventTriage:
         started newer ones since (a pixel's latest burst alone keeps only the last time an
         edge's image relit it)."""
         self.gap_us = int(gap_us)
+        self.cut_plane: tuple[float, float, float] | None = None
+        """ON-only surface: (a, b, c), the time ``a + b * x + c * y`` at which the read gate of
+        the frame to come opens at raw pixel (x, y); a burst running into it ends there, so that
+        a pixel that the moving camera turned onto a fading cell's light before its own cell
+        switched on still shows the switch. None: no cut."""
         self._still = (still_share, still_every)
         self._tiles = np.zeros((-(-height // TILE), -(-width // TILE)), np.bool_)
         self._edges: np.ndarray | None = None
@@ -341,6 +357,7 @@ class EventTriage:
         self._grid = _grid_index(height, width, stride)
         self.epoch_us = epoch_us
         self.marks_us = (epoch_us, epoch_us)
+        self.cut_plane = None
         self._near_share = 1.0
         self._tiles[:] = False
         self._edges = None
@@ -367,7 +384,8 @@ class EventTriage:
         epoch = self.epoch_us
         pixels = self.surface.reshape(-1, *self.surface.shape[2:])
         marks = [min(max(m - epoch, _NEVER), 1 << 30) for m in self.marks_us]
-        bursts = (pixels, epoch, self.gap_us, *marks)
+        a, b, c = self.cut_plane or (float(_NEVER + epoch), 0.0, 0.0)
+        bursts = (pixels, epoch, self.gap_us, *marks, (float(a - epoch), float(b), float(c)))
         grid = (*self._grid, self.stride == 1)
         rare = self._near_share < _RARE_SHARE
         near, seen = [], 0
