@@ -371,6 +371,8 @@ def test_the_read_gate_opens_row_by_row_down_the_locator():
         x, y = config.camera.project((facing[:3, :3] @ [*plane[:2], 0] + facing[:3, 3])[None])[0]
         want = reader.clock.mid(3) + (v - 0.5 - n / 2) * 50.0 - 400.0
         assert a + b * x + c * y == pytest.approx(want, abs=1.0)
+    reader.clock.observe(3, reader.clock.mid(3) + 300.0, slope_us=50.0)  # 300 us off
+    assert reader.gate_opens(4, facing) is None  # more than half the gate's 400 us lead
 
 
 @pytest.mark.parametrize(

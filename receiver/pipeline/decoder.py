@@ -137,6 +137,9 @@ class FrameClock:
         self._fit = (float(first_burst_us), float(frame_us))  # intercept, period
         self.slope_us = 0.0
         self._seen: deque[tuple[int, float]] = deque(maxlen=_HISTORY)
+        self.correction_us = np.inf
+        """How far the latest frame's bursts lay from where the clock had them (infinite until
+        a second frame was seen): the clock's error, as far as the bursts tell."""
 
     def mid(self, m: int) -> float:
         return self._fit[0] + m * self._fit[1]
@@ -150,12 +153,9 @@ class FrameClock:
         """The clock has seen at least one frame's bursts (and with them the scan-out slope)."""
         return bool(self._seen)
 
-    @property
-    def settled(self) -> bool:
-        """The clock has fitted its period to the bursts of several frames."""
-        return len(self._seen) >= 3
-
     def observe(self, m: int, mid_us: float, slope_us: float) -> None:
+        if self._seen:
+            self.correction_us = abs(mid_us - self.mid(m))
         self.slope_us = slope_us if not self._seen else 0.7 * self.slope_us + 0.3 * slope_us
         self._seen.append((m, mid_us))
         if len(self._seen) >= 3:
@@ -510,10 +510,11 @@ class CellReader:
     def gate_opens(self, m: int, T_cam_world: np.ndarray) -> tuple[float, float, float] | None:
         """(a, b, c): frame ``m``'s read gate opens at ``a + b * x + c * y`` at raw pixel (x, y)
         near the locator seen from ``T_cam_world`` (``EventTriage.cut_plane``), fitted to its
-        rows' gate times over a grid of points on it; None until the gate has been narrowed
-        (``fast`` never) and the clock settled, since a gate opening inside a switch would cut
-        the switch's own bursts."""
-        if not (self._gate_fitted and self.clock.settled):
+        rows' gate times over a grid of points on it. None until the gate has been narrowed
+        (``fast`` never) and the clock's latest correction was within half the gate's lead on
+        the switch: a gate opening inside a switch would cut the switch's own bursts in two
+        (the first frames of a lock, timed on a few bursts, can be milliseconds off)."""
+        if not (self._gate_fitted and self.clock.correction_us <= -self.gate[0] / 2):
             return None
         n = self.n
         u, v = (g.ravel() for g in np.meshgrid(*[np.linspace(0, n, 5)] * 2))
