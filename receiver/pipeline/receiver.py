@@ -155,8 +155,6 @@ class Track:
     """The latest read frames' leads of the locator's canonical turn (``misturned``)."""
     lapse_us: float | None
     """How long a proof holds (``DecoderParams.proof_lapse_us``); None: for good."""
-    cut_for: int | None = None
-    """The frame whose read gate the triage cuts bursts at (``EventTriage.cut_plane``)."""
     rechecked: list[np.ndarray] = field(default_factory=list)
     """Since the camera last moved, the corners refined to the locator's edges that the lock's
     detection and the rechecks found (``Receiver._recheck_still``)."""
@@ -538,11 +536,8 @@ class Receiver:
             if not parts:
                 continue
             self._triage.marks_us = (start, (start + frame_end) // 2 if track.late_mark else start)
-            if track.cut_for != track.next_frame:
-                mid = track.reader.clock.mid(track.next_frame)
-                pose = self.pose_at(np.array([mid]))[0]
-                self._triage.cut_plane = track.reader.gate_opens(track.next_frame, pose)
-                track.cut_for = track.next_frame
+            pose = self.pose_at(np.array([end]))[0]
+            self._triage.cut_plane = track.reader.gate_opens(track.next_frame, pose)
             with self._cpu("triage"):
                 if tracking:
                     self._select_near_edges()
