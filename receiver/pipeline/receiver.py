@@ -536,8 +536,12 @@ class Receiver:
             if not parts:
                 continue
             self._triage.marks_us = (start, (start + frame_end) // 2 if track.late_mark else start)
-            pose = self.pose_at(np.array([end]))[0]
-            self._triage.cut_plane = track.reader.gate_opens(track.next_frame, pose)
+            # No burst is cut before the frame's window opens: the plane is fitted only near it.
+            cut = None
+            if end >= start - self.config.refresh_us / 4:
+                pose = self.pose_at(np.array([end]))[0]
+                cut = track.reader.gate_opens(track.next_frame, pose)
+            self._triage.cut_plane = cut
             with self._cpu("triage"):
                 if tracking:
                     self._select_near_edges()
