@@ -496,6 +496,8 @@ class CellReader:
         """The grid map and the (n, n) inner pixel counts of a still grid last counted."""
         self._last_box: tuple[object, tuple[int, int, int, int]] = (None, (0, 0, 0, 0))
         """(pose and padding, box) of the latest ``box`` call."""
+        self._last_rows: tuple[object, tuple[float, float, float] | None] = (None, None)
+        """(pose, plane) of the latest ``_row_plane`` call."""
 
     def window(self, m: int) -> tuple[int, int]:
         """Time span of the bursts that frame ``m`` reads: the search gate until one frame's
@@ -516,16 +518,39 @@ class CellReader:
         (the first frames of a lock, timed on a few bursts, can be milliseconds off)."""
         if not (self._gate_fitted and self.clock.correction_us <= -self.gate[0] / 2):
             return None
-        n = self.n
-        u, v = (g.ravel() for g in np.meshgrid(*[np.linspace(0, n, 5)] * 2))
-        plane = np.c_[u, v, np.ones_like(u)] @ np.linalg.inv(self._plane_to_grid).T
-        points = np.c_[plane[:, :2], np.zeros(len(u))] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-        if np.any(points[:, 2] <= 0):
+        rows = self._row_plane(T_cam_world)
+        if rows is None:
             return None
-        px = self.config.camera.project(points)
-        opens = self.clock.mid(m) + (v - 0.5 - n / 2) * self.clock.slope_us + self.gate[0]
-        (a, b, c), *_ = np.linalg.lstsq(np.c_[np.ones(len(u)), px], opens, rcond=None)
-        return float(a), float(b), float(c)
+        # The gate opens linearly in the grid row, so its plane is the row plane's, rescaled.
+        a, b, c = rows
+        slope = self.clock.slope_us
+        opens = self.clock.mid(m) + (a - 0.5 - self.n / 2) * slope + self.gate[0]
+        return opens, b * slope, c * slope
+
+    def _row_plane(self, T_cam_world: np.ndarray) -> tuple[float, float, float] | None:
+        """(a, b, c): the grid row at raw pixel (x, y) near the locator is ``a + b * x + c * y``,
+        fitted over a grid of points on it; None if the locator is behind the camera. The last
+        plane is kept: a still camera's pose stays the same for many frames."""
+        key = T_cam_world.tobytes()
+        if self._last_rows[0] != key:
+            u, v = (g.ravel() for g in np.meshgrid(*[np.linspace(0, self.n, 5)] * 2))
+            px = self._grid_to_pixels(np.c_[u, v], (T_cam_world,))
+            plane = None
+            if px is not None:
+                (a, b, c), *_ = np.linalg.lstsq(np.c_[np.ones(len(v)), px], v, rcond=None)
+                plane = float(a), float(b), float(c)
+            self._last_rows = (key, plane)
+        return self._last_rows[1]
+
+    def _grid_to_pixels(self, grid: np.ndarray, poses: tuple[np.ndarray, ...]) -> np.ndarray | None:
+        """Raw pixels (len(poses) * k, 2) of the (k, 2) locator ``grid`` points (column, row)
+        seen from each pose in turn; None if any lies behind the camera."""
+        plane = np.c_[grid, np.ones(len(grid))] @ np.linalg.inv(self._plane_to_grid).T
+        points = np.c_[plane[:, :2], np.zeros(len(plane))]
+        seen = np.concatenate([points @ T[:3, :3].T + T[:3, 3] for T in poses])
+        if np.any(seen[:, 2] <= 0):
+            return None
+        return self.config.camera.project(seen)
 
     def _rises(self, m: int) -> bool:
         """Whether the inner locator switches on in frame ``m`` (frame 0 is the detected burst;
@@ -558,12 +583,9 @@ class CellReader:
         s = np.linspace(0, n, 17)
         zeros, full = np.zeros_like(s), np.full_like(s, n)
         border = np.r_[np.c_[s, zeros], np.c_[s, full], np.c_[zeros, s], np.c_[full, s]]
-        plane = np.c_[border, np.ones(len(border))] @ np.linalg.inv(self._plane_to_grid).T
-        points = np.c_[plane[:, :2], np.zeros(len(plane))]
-        corners = np.concatenate([points @ T[:3, :3].T + T[:3, 3] for T in poses])
-        if np.any(corners[:, 2] <= 0):
+        px = self._grid_to_pixels(border, poses)
+        if px is None:
             return 0, 0, 0, 0
-        px = cam.project(corners)
         lo = np.floor(px.min(axis=0)).astype(int) - pad_px
         hi = np.ceil(px.max(axis=0)).astype(int) + pad_px + 1
         return (max(lo[0], 0), min(hi[0], cam.width), max(lo[1], 0), min(hi[1], cam.height))
