@@ -12,3 +12,8 @@ def locator_block(geometry: MarkerGeometry, payload: np.ndarray) -> np.ndarray:
     cells = geometry.inner_locator.copy()
     cells[1:-1, 1:-1] = payload
     return cells
+
+
+def on_only(density: np.ndarray) -> np.ndarray:
+    """(2, n, n) ON and OFF densities (``CellReader._classify``) of cells that fired ON only."""
+    return np.stack([density, np.zeros_like(density)])

@@ -17,7 +17,7 @@ from eventocc.receiver.pipeline.config import ReceiverConfig
 from eventocc.receiver.pipeline.decoder import CellReader
 from eventocc.receiver.poses import invert
 from eventocc.receiver.sim.motion import look_at
-from tests.cells import locator_block
+from tests.cells import locator_block, on_only
 
 CONFIG = ReceiverConfig(CAMERA, cells=16)
 """About 4 px per cell at 0.6 m: a cell's inner part holds 4 to 9 pixel centres."""
@@ -72,7 +72,7 @@ def test_a_still_cell_reads_as_the_share_of_its_own_pixels():
     ev = _white_bursts(reader, T, cells)
     g = to_grid @ np.stack([ev.xu, ev.yu, np.ones(len(ev))])
     u, v = (g[:2] / g[2]).astype(np.float32)
-    count = reader._count(ev.t, ev.p, u, v, 0)[0]
+    count = reader._count(ev.t, ev.p, u, v, 0)[0, 0]  # ON bursts
     assert np.array_equal(count[cells], pixels[cells]) and not count[~cells].any()
 
 
@@ -102,7 +102,7 @@ def _density(payload_density: np.ndarray) -> np.ndarray:
     """A locator-grid density map: ring cells at exactly 0 or 1, the given payload inside."""
     density = CONFIG.geometry.inner_locator.astype(float)
     density[1:-1, 1:-1] = payload_density
-    return density
+    return on_only(density)
 
 
 def test_the_threshold_follows_a_dim_payload():
@@ -130,11 +130,11 @@ def test_what_lit_neighbours_spill_into_a_dark_cell_is_taken_off(monkeypatch):
     corners = padded[:-2, :-2] + padded[:-2, 2:] + padded[2:, :-2] + padded[2:, 2:]
     blurred = lit + 0.25 * sides + 0.1 * corners + rng.normal(0, 0.02, lit.shape)
     reader = CellReader(CONFIG, first_burst_us=0.0)
-    read = reader._classify(0, blurred, 1000)
+    read = reader._classify(0, on_only(blurred), 1000)
     assert np.array_equal(read.bits, payload)
     # Taken as they are, the densities misread the dark cells amid lit ones.
     monkeypatch.setattr(decoder, "_less_spill", lambda density, lit: density)
-    assert (reader._classify(0, blurred, 1000).bits != payload).sum() >= 3
+    assert (reader._classify(0, on_only(blurred), 1000).bits != payload).sum() >= 3
 
 
 @pytest.mark.parametrize("colour", [0, 1])

@@ -13,7 +13,7 @@ from eventocc.occ.profiles import get_profile
 from eventocc.occ.stream import StreamEncoder
 from eventocc.receiver.camera import CameraModel
 from eventocc.receiver.events import make_events
-from eventocc.receiver.pipeline import detector
+from eventocc.receiver.pipeline import decoder, detector
 from eventocc.receiver.pipeline.buffer import EventBuffer, first_at, to_columns
 from eventocc.receiver.pipeline.config import DecoderParams, FilterParams, ReceiverConfig
 from eventocc.receiver.pipeline.decoder import (
@@ -41,6 +41,7 @@ from eventocc.receiver.pipeline.pose import DARK_SIDE, PoseHistory, project_idea
 from eventocc.receiver.pipeline.report import FrameTruth
 from eventocc.receiver.pipeline.triage import EventTriage
 from eventocc.receiver.poses import make_pose
+from tests.cells import locator_block, on_only
 
 K = np.array([[300.0, 0, 173], [0, 300.0, 130], [0, 0, 1]])
 SIZE = 0.272
@@ -429,9 +430,9 @@ def test_cells_read_against_the_locator_ring_and_score_its_contrast():
     truth = np.random.default_rng(2).integers(0, 2, (8, 8))
     frame = geo.inner_locator.astype(float) * 12.0 + 0.5  # white ring cells ~12 events/px
     frame[1:-1, 1:-1] = truth * 9.0 + 0.8  # a bit dimmer payload, a noise floor
-    read = reader._classify(0, frame, 1000)
+    read = reader._classify(0, on_only(frame), 1000)
     assert np.array_equal(read.bits, truth) and read.locator_score > 0.9
-    absent = reader._classify(0, np.full_like(frame, 0.3), 10)
+    absent = reader._classify(0, on_only(np.full_like(frame, 0.3)), 10)
     assert absent.locator_score < config.decoder.min_locator_score
 
 
@@ -444,17 +445,27 @@ def _fast_reader(seed: int) -> tuple[CellReader, np.random.Generator, np.ndarray
     return CellReader(config, first_burst_us=0.0), rng, rng.integers(0, 2, (n - 2, n - 2))
 
 
+def _fast_frame(reader: CellReader, ring: np.ndarray, on: np.ndarray, off: np.ndarray):
+    """(2, n, n) ON and OFF densities of frame 0 (the locator rises): the ring's white cells at
+    ``ring`` (n, n) on the ON side, the payload's ``on`` and ``off`` inside."""
+    white = reader.config.geometry.inner_locator
+    frame = np.stack([np.where(white, ring, 0.0), np.zeros_like(ring)])
+    frame[:, 1:-1, 1:-1] = on, off
+    return frame
+
+
 def test_fast_reads_toggles_of_both_polarities_under_a_thinning_readout():
     # Densities as a 7.4 Mev/s cap leaves them at 24 px per cell: the cells toggled on fire
     # 0.2-0.4, those toggled off 0.4-0.95, the untoggled ones a few hundredths at most.
     reader, rng, toggled = _fast_reader(5)
-    geo = reader.config.geometry
-    n = geo.locator_side
+    n = reader.n
     rising = rng.random((n - 2, n - 2)) < 0.5
     shape = rising.shape
     level = np.where(rising, rng.uniform(0.2, 0.4, shape), rng.uniform(0.4, 0.95, shape))
-    frame = geo.inner_locator * rng.uniform(0.7, 0.95, (n, n)) + rng.uniform(0, 0.01, (n, n))
-    frame[1:-1, 1:-1] = np.where(toggled, level, rng.uniform(0.0, 0.03, level.shape))
+    on, off = (
+        np.where(toggled & up, level, rng.uniform(0.0, 0.03, shape)) for up in (rising, ~rising)
+    )
+    frame = _fast_frame(reader, rng.uniform(0.7, 0.95, (n, n)), on, off)
     read = reader._classify(0, frame, 1000)
     assert np.array_equal(read.bits, toggled)
     assert read.confidence.min() > get_profile("fast").erasure_below
@@ -465,15 +476,43 @@ def test_fast_reads_dark_cells_lit_by_their_toggling_neighbours_on_the_linear_sc
     # Blur without a cap: every toggled cell fires, while a third of the untoggled ones fire
     # for their neighbours, up to 0.45; a square root would spread those across the middle.
     reader, rng, toggled = _fast_reader(6)
-    geo = reader.config.geometry
-    n = geo.locator_side
-    spilled = rng.random(toggled.shape) < 0.35
-    dark = np.where(
-        spilled, rng.uniform(0.1, 0.45, toggled.shape), rng.uniform(0, 0.02, toggled.shape)
-    )
-    frame = geo.inner_locator * rng.uniform(0.9, 1.0, (n, n)) + rng.uniform(0, 0.01, (n, n))
-    frame[1:-1, 1:-1] = np.where(toggled, rng.uniform(0.85, 1.0, toggled.shape), dark)
+    n = reader.n
+    shape = toggled.shape
+    spilled = rng.random(shape) < 0.35
+    dark = np.where(spilled, rng.uniform(0.1, 0.45, shape), rng.uniform(0, 0.02, shape))
+    level = np.where(toggled, rng.uniform(0.85, 1.0, shape), dark)
+    up = rng.random(shape) < 0.5  # the direction of a cell's own switch, or its neighbours'
+    frame = _fast_frame(reader, rng.uniform(0.9, 1.0, (n, n)), level * up, level * ~up)
     assert np.array_equal(reader._classify(0, frame, 1000).bits, toggled)
+
+
+def test_fast_reads_each_polarity_less_what_the_neighbours_switching_its_way_spill(monkeypatch):
+    # Blur: a dark cell fires with each switching 4-neighbour, 0.15 of a toggle, in that
+    # neighbour's direction (ON as it lights, OFF as it darkens); a lit one does not notice.
+    reader, rng, toggled = _fast_reader(7)
+    geo, n = reader.config.geometry, reader.n
+    lit_before = np.zeros((n, n), bool)  # the ring's white cells rise in frame 0
+    lit_before[1:-1, 1:-1] = rng.random(toggled.shape) < 0.5
+    switched = locator_block(geo, toggled).astype(bool)
+    rising, falling = switched & ~lit_before, switched & lit_before
+    quiet_dark = ~switched & ~lit_before
+
+    def spill(source: np.ndarray) -> np.ndarray:
+        p = np.pad(source, 1).astype(float)
+        return 0.15 * (p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:]) * quiet_dark
+
+    noise = rng.uniform(0, 0.03, (2, n, n))
+    on, off = rising + spill(rising) + noise[0], falling + spill(falling) + noise[1]
+    frame = np.stack([on, off])
+    assert np.array_equal(reader._classify(0, frame, 1000).bits, toggled)
+
+    # The two polarities added up, a dark cell between a rising and a falling neighbour
+    # reads as much as a toggle.
+    def summed(self: CellReader, on: np.ndarray, off: np.ndarray, bits: np.ndarray):
+        return [decoder._less_spill(on + off, self._lit(bits))]
+
+    monkeypatch.setattr(CellReader, "_levels", summed)
+    assert (reader._classify(0, frame, 1000).bits != toggled).sum() >= 3
 
 
 def test_detection_retries_each_finer_binning_after_the_coarsest(monkeypatch):

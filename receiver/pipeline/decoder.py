@@ -30,7 +30,9 @@ Under hand-held motion five things keep the bits:
 - ``paper`` / ``robust`` (data frame + blank frame): ON bursts only; a white cell lights up.
 - ``fast`` (one differential symbol per refresh): bursts of either polarity; a cell that toggles
   (bit 1) fires ON or OFF in that refresh, an untoggled one fires none. The inner locator is
-  shown on even refreshes only, so its white cells toggle every refresh and read as 1.
+  shown on even refreshes only, so its white cells toggle every refresh and read as 1. Blur
+  makes a dark cell fire with its switching neighbours, each in its own direction, so a cell
+  can read as the stronger of its two polarities (``CellReader._levels``).
 
 The inner locator's known white and black cells give the reference densities and a score that
 says whether the marker is really there; the payload's own two clusters of densities place the
@@ -106,6 +108,13 @@ _ROOT_MARGIN = 1.2
 this much better than the linear scale: a capped readout's unequal polarities give 1.1-2.3
 times the separation there, while dense cells at 4-5 px per cell give 1.04-1.1 and read
 twenty times the bit errors on the root scale."""
+
+
+_APART_MARGIN = 1.1
+"""``fast`` reads its cells' polarities apart (``CellReader._levels``) only where that separates
+the toggled and untoggled cells' clusters this much better than their sum: the sum counts every
+event, and where a capped readout drops most of a switch's events, a toggled cell's few events
+of the other polarity are what lift it over the threshold."""
 
 
 @dataclass(frozen=True)
@@ -266,17 +275,18 @@ def _inner_cell(u, v, n, margin):
 
 @numba.njit(cache=True, nogil=True)
 def _cell_bursts(bursts, n, timing, on_only, margin, shifts):
-    """(shifts, n, n) count of the ``bursts`` = (t, p, u, v) (time, polarity, grid point)
-    inside each cell's inner part and its row's time gate, on the grid moved by each of the
-    (du, dv) ``shifts`` (cells). ``timing`` = (mid, slope, gate_lo, gate_hi): a burst at grid
-    height ``v`` is predicted at ``mid + (v - 0.5 - n / 2) * slope`` and read within
-    [gate_lo, gate_hi] of that."""
+    """(shifts, 2, n, n) count of the ON and the OFF ``bursts`` = (t, p, u, v) (time,
+    polarity, grid point) inside each cell's inner part and its row's time gate, on the grid
+    moved by each of the (du, dv) ``shifts`` (cells). ``timing`` = (mid, slope, gate_lo,
+    gate_hi): a burst at grid height ``v`` is predicted at ``mid + (v - 0.5 - n / 2) * slope``
+    and read within [gate_lo, gate_hi] of that."""
     t, p, u, v = bursts
     mid, slope, gate_lo, gate_hi = timing
-    count = np.zeros((shifts.shape[0], n, n), np.int32)
+    count = np.zeros((shifts.shape[0], 2, n, n), np.int32)
     for i in range(t.shape[0]):
         if on_only and p[i] <= 0:
             continue
+        d = 0 if p[i] > 0 else 1
         for s in range(shifts.shape[0]):
             ui, vi = u[i] + shifts[s, 0], v[i] + shifts[s, 1]
             r, c = _inner_cell(ui, vi, n, margin)
@@ -284,7 +294,7 @@ def _cell_bursts(bursts, n, timing, on_only, margin, shifts):
                 continue
             dt = t[i] - (mid + (vi - 0.5 - n / 2) * slope)
             if gate_lo <= dt <= gate_hi:
-                count[s, r, c] += 1
+                count[s, d, r, c] += 1
     return count
 
 
@@ -613,7 +623,7 @@ class CellReader:
         count = self._count(t, p, u, v, m, shifts)
         mid = steps // 2
         density = count / self._inner_pixels(poses[mid], to_grid[mid], still)
-        best = self._sharpest(density)
+        best = self._sharpest(density.sum(axis=1))
         read = self._classify(m, density[best], int(count[best].sum()))
         if not self.clock.timed:
             # Before any burst fitted the clock the rows' times are guesses without the scan-out
@@ -623,7 +633,8 @@ class CellReader:
         return read
 
     def _count(self, t, p, u, v, m: int, shifts: np.ndarray = _NO_SHIFT) -> np.ndarray:
-        """(shifts, n, n) cell counts of frame ``m`` on the grid moved by each shift."""
+        """(shifts, 2, n, n) cell counts of frame ``m``'s ON and OFF bursts on the grid moved
+        by each shift."""
         mid, slope, margin = self.clock.mid(m), self.clock.slope_us, self.config.decoder.cell_margin
         on_only = self._on_only
         timing = (mid, slope, *self.gate)
@@ -728,23 +739,45 @@ class CellReader:
         self.gate, self._gate_fitted = (float(fit[0]), float(fit[1])), True
 
     def _classify(self, m: int, density: np.ndarray, pixels: int) -> FrameRead:
-        """Bits from the cells' event densities, against the ring's white and black cells,
-        once less what the lit neighbours spill into each cell (``_less_spill``)."""
-        bits = self._split(density).bits
+        """Bits from the cells' (2, n, n) ON and OFF burst densities, against the ring's white
+        and black cells, once less what the neighbours spill into each cell (``_levels``)."""
+        on, off = density
+        both = on + off
         # The locator's readings take the densities as they are: the spill's fit assumes the
         # 'L' upright, which they judge.
         cells = self._ring_cells
-        ring = density[cells[:, 1], cells[:, 0]]
+        ring = both[cells[:, 1], cells[:, 0]]
         white_ref, black_ref = _ring_references(ring, self._ring_white)
         score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
-        turns = turn_readings(density, self.config.geometry) / max(float(ring.mean()), 1e-9)
-        raw = density
+        turns = turn_readings(both, self.config.geometry) / max(float(ring.mean()), 1e-9)
+        bits = self._split(both).bits
         for _ in range(2):  # the second pass fits the spill on the bits the first corrected
-            split = self._split(_less_spill(raw, self._lit(bits)))
+            split, *others = (self._split(level) for level in self._levels(on, off, bits))
+            for other in others:
+                if other.separation > _APART_MARGIN * split.separation:
+                    split = other
             bits = split.bits
         sure = self.config.decoder.sure_contrast * max(split.white_ref - split.black_ref, 1e-9)
         confidence = np.clip(np.abs(split.payload - split.threshold) / sure, 0.0, 1.0)
         return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
+
+    def _levels(self, on: np.ndarray, off: np.ndarray, bits: np.ndarray) -> list[np.ndarray]:
+        """(n, n) cell levels less what the neighbours spill into them (``_less_spill``),
+        given a first reading ``bits``: one map, or for ``fast`` two, the second taken where it
+        separates the cells' two clusters clearly better (``_APART_MARGIN``).
+
+        ON-only profiles: the ON densities less the lit neighbours' spill. ``fast``: the two
+        polarities added up less the spill of every switching neighbour, then the stronger of
+        the two, each less the spill of the neighbours that switched its way. A toggling cell
+        fires the one polarity of its own switch, while a dark cell fires with each neighbour
+        in that neighbour's direction: between a rising and a falling one it fires both, which
+        the sum adds up."""
+        lit = self._lit(bits)
+        if not self.both_polarities:
+            return [_less_spill(on, lit)]
+        rose = lit & (on >= off)
+        apart = np.maximum(_less_spill(on, rose), _less_spill(off, lit & ~rose))
+        return [_less_spill(on + off, lit), apart]
 
     def _split(self, density: np.ndarray) -> _Split:
         """The payload of (n, n) densities split against the ring's white and black cells:
