@@ -622,9 +622,9 @@ class CellReader:
         shifts = _ALIGN_SHIFTS if self._on_only and motion >= _ALIGN_MIN_MOTION else _NO_SHIFT
         count = self._count(t, p, u, v, m, shifts)
         mid = steps // 2
-        density = count / self._inner_pixels(poses[mid], to_grid[mid], still)
-        best = self._sharpest(density.sum(axis=1))
-        read = self._classify(m, density[best], int(count[best].sum()))
+        inner = self._inner_pixels(poses[mid], to_grid[mid], still)
+        best = self._sharpest(count.sum(axis=1) / inner)
+        read = self._classify(m, count[best] / inner, int(count[best].sum()))
         if not self.clock.timed:
             # Before any burst fitted the clock the rows' times are guesses without the scan-out
             # slope: a frame whose locator does not rise (``fast``'s first buffered one) reads
