@@ -23,6 +23,7 @@ from bench.scenes.draw import (
     SceneDraw,
     draw,
     folds,
+    with_values,
 )
 from bench.scenes.run import (
     earlier_results,
@@ -88,6 +89,25 @@ def test_the_draws_span_each_range(name):
     quarter = (scale(hi) - scale(lo)) / 4
     assert scale(values.min()) < scale(lo) + quarter
     assert scale(values.max()) > scale(hi) - quarter
+
+
+def test_a_drawn_scene_can_be_rerun_with_one_value_changed():
+    d = draw(0, 1)
+    changed = with_values(d, ["pwm_hz=1000", "max_rate_mev_s=null", "lead_in_content=bars"])
+    assert (changed.pwm_hz, changed.max_rate_mev_s, changed.lead_in_content) == (1000, None, "bars")
+    assert changed.scene().display.pwm_hz == 1000
+    assert (
+        replace(
+            changed,
+            pwm_hz=d.pwm_hz,
+            max_rate_mev_s=d.max_rate_mev_s,
+            lead_in_content=d.lead_in_content,
+        )
+        == d
+    )
+    for bad in ("pwm=1000", "pwm_hz"):
+        with pytest.raises(ValueError, match="scene parameter"):
+            with_values(d, [bad])
 
 
 def test_the_draws_cover_every_choice():

@@ -9,7 +9,8 @@ runs the streaming receiver on it (``bench.scenes.run``), then writes the per-sc
 Scenes run ``--jobs`` at a time, with the same results for any number of jobs. Each scene's
 result is printed as it completes, and ``--resume`` takes those of an
 earlier run's output; ``--only`` reruns chosen scene indices and prints their results without
-writing, and ``--report-only`` rewrites the section from the saved results.
+writing (``--set NAME=VALUE ...`` first changes drawn values in each, e.g. ``pwm_hz=1000``), and
+``--report-only`` rewrites the section from the saved results.
 """
 
 from __future__ import annotations
@@ -24,33 +25,38 @@ from pathlib import Path
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")  # one core per job: --jobs sets the parallelism
 
 from bench.report import write_section
-from bench.scenes.draw import draw
+from bench.scenes.draw import draw, with_values
 from bench.scenes.run import earlier_results, run_scene
 from bench.scenes.summary import WRONG_FLOW, in_targets, summarise
 
 DOCS = Path(__file__).resolve().parent.parent.parent / "docs"
 
 
-def _run_index(seed: int, index: int) -> dict:
-    return run_scene(draw(seed, index))
+def _run_index(seed: int, index: int, changes: tuple[str, ...] = ()) -> dict:
+    return run_scene(with_values(draw(seed, index), list(changes)))
 
 
 def run_suite(
-    seed: int, indices: list[int], jobs: int, done: dict[int, dict] | None = None
+    seed: int,
+    indices: list[int],
+    jobs: int,
+    done: dict[int, dict] | None = None,
+    changes: tuple[str, ...] = (),
 ) -> list[dict]:
     """The results of scenes ``indices`` of the suite of ``seed``, in that order (those in
-    ``done`` taken from there), each printed as it completes."""
+    ``done`` taken from there), each printed as it completes; ``changes``: drawn values
+    replaced in each (``with_values``)."""
     done = done or {}
     todo = [i for i in indices if i not in done]
     results = dict(done)
     if jobs <= 1:
-        completed = (_run_index(seed, i) for i in todo)
+        completed = (_run_index(seed, i, changes) for i in todo)
         for n, r in enumerate(completed, 1):
             results[r["draw"]["index"]] = r
             _progress(n, len(todo), r)
         return [results[i] for i in indices]
     with ProcessPoolExecutor(jobs) as pool:
-        futures = [pool.submit(_run_index, seed, i) for i in todo]
+        futures = [pool.submit(_run_index, seed, i, changes) for i in todo]
         for n, future in enumerate(as_completed(futures), 1):
             r = future.result()
             results[r["draw"]["index"]] = r
@@ -86,6 +92,13 @@ def main(argv: list[str] | None = None) -> None:
         "--only", type=int, nargs="+", help="rerun these scene indices, print, write nothing"
     )
     parser.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="NAME=VALUE",
+        help="with --only: change these drawn values in each scene first (e.g. pwm_hz=1000)",
+    )
+    parser.add_argument(
         "--resume",
         type=Path,
         help="take the scenes an earlier run printed (its output) instead of running them again",
@@ -101,6 +114,13 @@ def main(argv: list[str] | None = None) -> None:
         help="rewrite the section from <out>/results/scenes.json without running",
     )
     args = parser.parse_args(argv)
+    if args.set and not args.only:
+        parser.error("--set changes the scenes it reruns: give them with --only")
+    if args.set:
+        try:  # a misspelt name is refused before any scene runs
+            with_values(draw(args.seed, args.only[0]), args.set)
+        except ValueError as exc:
+            parser.error(str(exc))
     saved = args.out / "results" / "scenes.json"
     if args.report_only:
         print(write_report(json.loads(saved.read_text()), args.out))
@@ -110,7 +130,7 @@ def main(argv: list[str] | None = None) -> None:
         indices = [i for i in indices if in_targets(draw(args.seed, i).to_dict(), WRONG_FLOW)]
     t0 = time.perf_counter()
     done = earlier_results(args.resume, args.seed) if args.resume else {}
-    results = run_suite(args.seed, indices, args.jobs, done)
+    results = run_suite(args.seed, indices, args.jobs, done, tuple(args.set))
     if args.only:
         print(json.dumps(results, indent=1))
         return

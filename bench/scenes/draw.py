@@ -12,8 +12,9 @@ one of three real sensor formats (a hand-held one with room to wander).
 
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 
@@ -227,6 +228,27 @@ class SceneDraw:
     @classmethod
     def from_dict(cls, d: dict) -> SceneDraw:
         return cls(**{f.name: d[f.name] for f in fields(cls)})
+
+
+def with_values(d: SceneDraw, assignments: list[str]) -> SceneDraw:
+    """``d`` with some of its drawn values replaced, each given as ``NAME=VALUE`` (a JSON value:
+    a number, ``null``, or a bare word for a string): how one scene fares with one thing
+    changed, say a PWM backlight. Only what ``SceneDraw.scene`` reads takes effect (``cell_px``
+    is a report of the drawn geometry, not an input)."""
+    names = {f.name for f in fields(SceneDraw)}
+    values = {}
+    for assignment in assignments:
+        name, sep, raw = assignment.partition("=")
+        if not sep or name not in names:
+            raise ValueError(
+                f"expected NAME=VALUE with NAME a scene parameter, got {assignment!r} "
+                f"(parameters: {', '.join(sorted(names))})"
+            )
+        try:
+            values[name] = json.loads(raw)
+        except json.JSONDecodeError:
+            values[name] = raw
+    return replace(d, **values)
 
 
 def _camera(width: int, height: int, hfov_deg: float, k1: float, p1: float, p2: float):
