@@ -25,7 +25,7 @@ from eventocc.receiver.pipeline.decoder import (
 )
 from eventocc.receiver.pipeline.detector import (
     MarkerNotFound,
-    _binned_period_match,
+    _binned_blink,
     _period_match,
     blink_heatmap,
     blink_phase,
@@ -600,7 +600,7 @@ def _thinned_blink(blink_hz: float, side: int, keep: float, seed: int = 0) -> np
 def test_a_thinned_blink_is_timed_on_binned_pixels(refresh_hz, blinks):
     """A readout that keeps a tenth of the events leaves a pixel a burst's one event or none:
     its own periods spread and miss the told blink, while 2 x 2 pixels' still match it. The
-    binned match still refuses a display a sixth off."""
+    binned pixels still refuse a display a sixth off, and the same events at random times."""
     side = 64
     config = ReceiverConfig(
         CameraModel(side, side, np.array([[60.0, 0, 32], [0, 60.0, 32], [0, 0, 1]])),
@@ -611,7 +611,11 @@ def test_a_thinned_blink_is_timed_on_binned_pixels(refresh_hz, blinks):
     heat, triplets = blink_heatmap([ev], side, side, config.blink_hz, config.detector.sigma_frac)
     least = config.detector.min_period_match
     assert _period_match(heat, triplets, mask) < least
-    assert (_binned_period_match([ev], mask, config) >= least) == blinks
+    assert _binned_blink([ev], mask, config) == blinks
+    rng = np.random.default_rng(1)
+    noise = ev[rng.permutation(len(ev))]
+    noise["t"] = np.sort(rng.integers(ev["t"][0], ev["t"][-1], len(ev)))
+    assert not _binned_blink([noise], mask, config)
 
 
 def _blinking_everywhere(monkeypatch, flow_px_per_ms: float) -> tuple[ReceiverConfig, np.ndarray]:

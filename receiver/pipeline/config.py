@@ -70,7 +70,8 @@ class DetectorParams:
     min_period_match: float = 0.2
     """Mean Gaussian weight of the region's triplets: ~0.9 at the right blink frequency with a
     still camera, ~0.3 under hand-held motion (swept edges flip at any period), ~0.1 at a
-    display 10 Hz off (one sigma is ``sigma_frac`` of the frequency)."""
+    display 10 Hz off (one sigma is ``sigma_frac`` of the frequency). Below it, 2 x 2 binned
+    pixels decide by beating blinks two widths off instead (``detector._binned_blink``)."""
     min_harmonic_ratio: float = 0.08
     """|X_k| / X_0 of the ROI's signed event count; noise gives ~1/sqrt(events), ``fast`` ~0.15."""
     min_orientation_score: float = 0.25

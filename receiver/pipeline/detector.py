@@ -49,6 +49,7 @@ of an attempt on a megapixel window.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import cv2
@@ -577,9 +578,7 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     # A short window cannot resolve the blink frequency by its DFT, but every triplet measures
     # one period: in the region they must match the told blink, not just come closest to it.
     match = _period_match(heat, triplets, mask)
-    if match < params.min_period_match and cam.width % 2 == 0 == cam.height % 2:
-        match = max(match, _binned_period_match(parts, mask, config))
-    if match < params.min_period_match:
+    if match < params.min_period_match and not _binned_blink(parts, mask, config):
         raise MarkerNotFound(
             f"temporal: the blinking region's period does not match {config.blink_hz:g} Hz "
             f"(mean match {match:.2f}); check --refresh-hz and --profile"
@@ -677,31 +676,34 @@ def _period_match(heat: np.ndarray, triplets: np.ndarray, mask: np.ndarray) -> f
     return float(heat[inside].sum() / max(1, triplets[inside].sum()))
 
 
-def _binned_period_match(
-    parts: list[np.ndarray], mask: np.ndarray, config: ReceiverConfig
-) -> float:
-    """The period match of the events on 2 x 2 binned pixels, or 0 if blinks two widths
-    (``2 * sigma_frac``) slower or faster match them as well.
+def _binned_blink(parts: list[np.ndarray], mask: np.ndarray, config: ReceiverConfig) -> bool:
+    """Whether the events on 2 x 2 binned pixels inside ``mask`` match the told blink better
+    than blinks two widths (``2 * sigma_frac``) slower and faster, by more than chance would
+    (three standard errors of the told blink's mean weight: a weight in [0, 1] of mean m
+    varies by at most m).
 
     A readout that thins the events (a rate controller, a full link) leaves a pixel a couple
     of events per blink: it misses whole bursts and times the others by whichever of their
     events survived, so its own triplets' periods spread even at the right blink. Four pixels
-    together keep an event of nearly every burst. Their periods still spread more than dense
-    pixels' do, so a display a sixth off the told rate can match them about as well as dense
-    pixels match the right one: the told blink must beat its neighbours on the same events.
-    Where each pixel is dense, binning mixes neighbouring cells' bursts and matches less well
-    than the pixels themselves, so this is taken only where those fail."""
+    together keep an event of nearly every burst. How well their periods match then depends on
+    how thin the readout left them (0.15 at the told blink, 0.11 two widths off, behind a
+    readout capped at 14 Mev/s of a 240 Hz display with a 3 ms rise), and a display a sixth off
+    the told rate can match them about as well as dense pixels match the right one: only the
+    told blink beating its neighbours on the same events tells the two apart. Where each pixel
+    is dense, binning mixes neighbouring cells' bursts and matches less well than the pixels
+    themselves, so this is asked only where those fail."""
     cam, params = config.camera, config.detector
-    binned = _binned(parts, 2)
+    if cam.width % 2 or cam.height % 2:
+        return False
+    binned, inside = _binned(parts, 2), mask[::2, ::2]
     off = 2 * params.sigma_frac
-    told, slower, faster = (
-        _period_match(
-            *blink_heatmap(binned, cam.width // 2, cam.height // 2, hz, params.sigma_frac),
-            mask[::2, ::2],
-        )
+    maps = [
+        blink_heatmap(binned, cam.width // 2, cam.height // 2, hz, params.sigma_frac)
         for hz in (config.blink_hz, config.blink_hz * (1 - off), config.blink_hz * (1 + off))
-    )
-    return told if told > max(slower, faster) else 0.0
+    ]
+    told, slower, faster = (_period_match(heat, triplets, inside) for heat, triplets in maps)
+    triplets = int(maps[0][1][inside > 0].sum())
+    return told - max(slower, faster) > 3 * math.sqrt(told / max(triplets, 1))
 
 
 def _solve_pnp(corners: np.ndarray, config: ReceiverConfig) -> np.ndarray:
