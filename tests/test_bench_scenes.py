@@ -233,9 +233,9 @@ def test_the_targets_count_the_scenes_in_their_range_only():
     ]
     text, covered = targets(results)
     assert len(covered) == 3
-    assert "(3 scenes): locked within 150 ms of the marker appearing in 67%" in text
+    assert "(3 scenes): locked within 150 ms of the marker appearing in 2 of 3 (66.7%)" in text
     assert "99.67% of 3,000 verified poses" in text
-    assert "message delivered in 67%" in text
+    assert "message delivered in 2 of 3 (66.7%)" in text
     assert failed(results[0]) == [] and failed(results[1]) == ["lock"]
     assert failed(results[2]) == ["poses", "message"]
     assert "pixels per cell" in parameter_table(results)
