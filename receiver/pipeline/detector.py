@@ -679,17 +679,16 @@ def _period_match(heat: np.ndarray, triplets: np.ndarray, mask: np.ndarray) -> f
 def _binned_blink(parts: list[np.ndarray], mask: np.ndarray, config: ReceiverConfig) -> bool:
     """Whether the events on 2 x 2 binned pixels inside ``mask`` match the told blink better
     than blinks two widths (``2 * sigma_frac``) slower and faster, by more than chance would
-    (three standard errors of the told blink's mean weight: a weight in [0, 1] of mean m
-    varies by at most m).
+    (three standard errors of the told blink's mean weight: a weight in [0, 1] of mean m has a
+    variance of at most m).
 
     A readout that thins the events (a rate controller, a full link) leaves a pixel a couple
     of events per blink: it misses whole bursts and times the others by whichever of their
     events survived, so its own triplets' periods spread even at the right blink. Four pixels
-    together keep an event of nearly every burst. How well their periods match then depends on
-    how thin the readout left them (0.15 at the told blink, 0.11 two widths off, behind a
-    readout capped at 14 Mev/s of a 240 Hz display with a 3 ms rise), and a display a sixth off
-    the told rate can match them about as well as dense pixels match the right one: only the
-    told blink beating its neighbours on the same events tells the two apart. Where each pixel
+    together keep an event of nearly every burst. How well their periods match the told blink
+    then depends on how thin the readout left them, and a display a sixth off the told rate can
+    match them about as well as dense pixels match the right one: only the told blink beating
+    its neighbours on the same events tells the two apart. Where each pixel
     is dense, binning mixes neighbouring cells' bursts and matches less well than the pixels
     themselves, so this is asked only where those fail."""
     cam, params = config.camera, config.detector
