@@ -688,9 +688,9 @@ def _binned_blink(parts: list[np.ndarray], mask: np.ndarray, config: ReceiverCon
     together keep an event of nearly every burst. How well their periods match the told blink
     then depends on how thin the readout left them, and a display a sixth off the told rate can
     match them about as well as dense pixels match the right one: only the told blink beating
-    its neighbours on the same events tells the two apart. Where each pixel
-    is dense, binning mixes neighbouring cells' bursts and matches less well than the pixels
-    themselves, so this is asked only where those fail."""
+    its neighbours on the same events tells the two apart. Where each pixel is dense, binning
+    mixes neighbouring cells' bursts and matches less well than the pixels themselves, so this
+    is asked only where those fail."""
     cam, params = config.camera, config.detector
     if cam.width % 2 or cam.height % 2:
         return False
@@ -701,8 +701,8 @@ def _binned_blink(parts: list[np.ndarray], mask: np.ndarray, config: ReceiverCon
         for hz in (config.blink_hz, config.blink_hz * (1 - off), config.blink_hz * (1 + off))
     ]
     told, slower, faster = (_period_match(heat, triplets, inside) for heat, triplets in maps)
-    triplets = int(maps[0][1][inside > 0].sum())
-    return told - max(slower, faster) > 3 * math.sqrt(told / max(triplets, 1))
+    periods = int(maps[0][1][inside > 0].sum())  # the same triplets at every blink
+    return told - max(slower, faster) > 3 * math.sqrt(told / max(periods, 1))
 
 
 def _solve_pnp(corners: np.ndarray, config: ReceiverConfig) -> np.ndarray:
