@@ -36,9 +36,9 @@ Under hand-held motion five things keep the bits:
 
 The inner locator's known white and black cells give the reference densities and a score that
 says whether the marker is really there; the payload's own two clusters of densities place the
-threshold between them, and a cell's distance from it its confidence (``fast`` on the linear or
-the square-root scale of the densities, whichever separates the clusters more: its two
-polarities can fire unlike).
+threshold between them, and a cell's distance from it its confidence (on the linear or the
+square-root scale of the densities, whichever separates the clusters more: a capped readout
+spreads the lit cells' densities).
 
 The frame clock is re-estimated from the ON bursts of the locator's white cells, row by row, at
 every frame where the locator rises, so neither a display/receiver clock mismatch nor the
@@ -104,9 +104,9 @@ _SPLIT_RANGE = (0.25, 0.75)
 rounds) and kept within this share of the way from the black to the white reference: a frame
 of nearly one colour has no second cluster to find."""
 _ROOT_MARGIN = 1.2
-"""``fast`` splits on the square root of its densities only where that separates the clusters
-this much better than the linear scale: a capped readout's unequal polarities give 1.1-2.3
-times the separation there, while dense cells at 4-5 px per cell give 1.04-1.1 and read
+"""A frame is split on the square root of its densities only where that separates the clusters
+this much better than the linear scale: a capped readout's unequal polarities give ``fast``
+1.1-2.3 times the separation there, while dense cells at 4-5 px per cell give 1.04-1.1 and read
 twenty times the bit errors on the root scale."""
 
 
@@ -780,22 +780,20 @@ class CellReader:
         return [_less_spill(on + off, lit), apart]
 
     def _split(self, density: np.ndarray) -> _Split:
-        """The payload of (n, n) densities split against the ring's white and black cells:
-        ``fast`` on the scale, linear or square root, that separates its two clusters more
-        (``_Split.separation``), the other profiles on the linear one.
+        """The payload of (n, n) densities split against the ring's white and black cells, on
+        the scale, linear or square root, that separates its two clusters more
+        (``_Split.separation``).
 
-        A ``fast`` cell toggles either way, and the two polarities fire unlike: ON events bunch
-        at the switch, OFF events trail over milliseconds, so a readout that drops the excess
-        of each millisecond keeps a far smaller share of the ON bursts than of the OFF ones.
-        The toggled cells then spread over a range many times the untoggled ones' counting
-        noise, and a threshold midway between the clusters' means falls among the weaker
-        polarity's cells. The square root evens such spreads (it is the scale on which a
-        count's noise is the same at any rate); where the toggled cells all fire and the
-        untoggled ones spread instead (blur lights a dark cell from its toggling neighbours),
-        it widens the untoggled ones' spread, and the linear scale separates better."""
+        Where one cluster spreads far wider than the other, a threshold midway between their
+        means falls among the wider one's cells. A readout that drops the excess of each
+        millisecond does it: a lit cell keeps a varying share of its pixels' events where a dark
+        one has few to lose, and ``fast``'s ON bursts, which bunch at the switch, lose a far
+        larger share than its OFF ones, which trail over milliseconds. The square root evens
+        such spreads (it is the scale on which a count's noise is the same at any rate); where
+        the lit cells all fire and the dark ones spread instead (blur lights a dark cell from
+        its switching neighbours), it widens the dark ones' spread, and the linear scale
+        separates better."""
         linear = _split_levels(density, self._ring_cells, self._ring_white)
-        if not self.both_polarities:
-            return linear
         root = _split_levels(np.sqrt(np.maximum(density, 0.0)), self._ring_cells, self._ring_white)
         return root if root.separation > _ROOT_MARGIN * linear.separation else linear
 
