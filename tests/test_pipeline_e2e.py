@@ -187,6 +187,15 @@ def test_wrong_link_settings_are_reported_not_raised(told, why):
     assert any(why in reason for reason in report["detection_failures"])
 
 
+def test_a_dimmed_screen_is_reported_with_its_brightness_to_check():
+    # A 1 kHz PWM backlight at half duty: the lit pixels fire with every PWM period, and the
+    # data frames' blink never shows.
+    log, _ = _run(_scene("robust", STATIC, "gen4-indoor", display=Display(pwm_hz=1000.0)), 1.1)
+    report = log.report()
+    assert not report["locked"] and not report["messages"]
+    assert any("full brightness" in reason for reason in report["detection_failures"])
+
+
 def test_wrong_profile_locks_but_never_delivers_a_wrong_message():
     log, _ = _run(_scene("fast", STATIC, "gen4-indoor"), 1.0, profile="robust")
     assert log.report()["messages"] == []  # frames fail their CRC: nothing unverified comes out

@@ -87,6 +87,12 @@ from eventocc.receiver.pipeline.tracker import (
 
 TILE_PX = 8
 """Side of the blink map's tiles: a couple of cells at the smallest accepted marker."""
+_CHECK_BLINK = (
+    "check --refresh-hz and --profile, and that the screen runs at full brightness (a dimmed "
+    "backlight's PWM flicker hides the blink)"
+)
+"""What a temporal failure asks the user to check: the link settings, and a flickering screen,
+which no refresh rate or profile makes readable."""
 _MAP_SAMPLE = 1_000_000
 """Events of the window that the blink map reads (every k-th): a tile's pulse stands out of a
 sample as well as of all of them, and a megapixel sensor's window holds ten times as many."""
@@ -319,9 +325,7 @@ def blinking_region(parts: list[np.ndarray], config: ReceiverConfig) -> BlinkReg
     blinking = (busy & enough).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(blinking, connectivity=8)
     if n < 2:
-        raise MarkerNotFound(
-            f"temporal: nothing blinks at {config.blink_hz:g} Hz; check --refresh-hz and --profile"
-        )
+        raise MarkerNotFound(f"temporal: nothing blinks at {config.blink_hz:g} Hz; {_CHECK_BLINK}")
     region = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     x_k = complex(acc[3][region].sum(), acc[4][region].sum())
     on = acc[5][region].sum()
@@ -457,7 +461,7 @@ def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Det
     if np.any(flow) and not region.harmonic_ratio >= config.detector.min_harmonic_ratio:
         raise MarkerNotFound(
             f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
-            f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); check --refresh-hz and --profile"
+            f"Hz (harmonic ratio {region.harmonic_ratio:.2f}); {_CHECK_BLINK}"
         )
     paths = [lambda: _detect_moving(parts, tb, flow, region, config)]
     if np.any(flow):
@@ -581,7 +585,7 @@ def _detect_still(parts: list[np.ndarray], config: ReceiverConfig) -> Detection:
     if match < params.min_period_match and not _binned_blink(parts, mask, config):
         raise MarkerNotFound(
             f"temporal: the blinking region's period does not match {config.blink_hz:g} Hz "
-            f"(mean match {match:.2f}); check --refresh-hz and --profile"
+            f"(mean match {match:.2f}); {_CHECK_BLINK}"
         )
     return _still_in_region(parts, config, mask)
 
@@ -632,7 +636,7 @@ def _still_in_region(
     if not ratio >= params.min_harmonic_ratio:
         raise MarkerNotFound(
             f"temporal: the blinking region does not pulse at {config.blink_hz:g} "
-            f"Hz (harmonic ratio {ratio:.2f}); check --refresh-hz and --profile"
+            f"Hz (harmonic ratio {ratio:.2f}); {_CHECK_BLINK}"
         )
     period = 1e6 / config.blink_hz
     img = burst_image(parts, burst, period, mask)
