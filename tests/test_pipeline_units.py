@@ -436,7 +436,7 @@ def test_cells_read_against_the_locator_ring_and_score_its_contrast():
     assert absent.locator_score < config.decoder.min_locator_score
 
 
-def test_a_capped_readout_s_spread_white_cells_read_on_the_square_root_scale():
+def test_white_cells_that_a_capped_readout_spreads_read_on_the_square_root_scale():
     # Densities as a 7-8 Mev/s cap leaves a `robust` frame's: its white cells spread over
     # 0.12-0.6, its black ones fire hardly at all. A threshold midway between the clusters'
     # means (~0.18) reads the dimmest white cells black; the square root's does not.
