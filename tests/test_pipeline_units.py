@@ -437,21 +437,22 @@ def test_cells_read_against_the_locator_ring_and_score_its_contrast():
 
 
 def test_white_cells_that_a_capped_readout_spreads_read_on_the_square_root_scale():
-    # Densities as a 7-8 Mev/s cap leaves a `robust` frame's: its white cells spread over
-    # 0.12-0.6, its black ones fire hardly at all. A threshold midway between the clusters'
-    # means (~0.18) reads the dimmest white cells black; the square root's does not.
+    # Densities as a 7-8 Mev/s cap leaves a `robust` frame's, one ON event per lit pixel per
+    # transition: its white cells spread over 0.12-0.6, its black ones fire hardly at all. A
+    # threshold midway between the clusters' means (~0.18) reads the dimmest white cells black;
+    # the square root's does not. A dense readout's reader keeps the linear scale.
     config = ReceiverConfig(CameraModel(346, 260, K), cells=16)
-    reader = CellReader(config, first_burst_us=0.0)
     rng = np.random.default_rng(3)
-    n = reader.n
+    n = config.geometry.locator_side
     truth = rng.integers(0, 2, (n - 2, n - 2))
     frame = config.geometry.inner_locator * rng.uniform(0.2, 0.6, (n, n))
     shape = truth.shape
     black = np.where(rng.random(shape) < 0.05, rng.uniform(0.0, 0.04, shape), 0.0)
     frame[1:-1, 1:-1] = np.where(truth, rng.uniform(0.12, 0.6, shape), black)
-    linear = decoder._split_levels(frame, reader._ring_cells, reader._ring_white)
-    assert (linear.bits != truth).sum() >= 5
-    assert np.array_equal(reader._classify(0, on_only(frame), 1000).bits, truth)
+    sparse = CellReader(config, first_burst_us=0.0, sparse=True)
+    assert np.array_equal(sparse._classify(0, on_only(frame), 1000).bits, truth)
+    dense = CellReader(config, first_burst_us=0.0)
+    assert (dense._classify(0, on_only(frame), 1000).bits != truth).sum() >= 5
 
 
 def _fast_reader(seed: int) -> tuple[CellReader, np.random.Generator, np.ndarray]:

@@ -469,14 +469,19 @@ def _split_levels(levels: np.ndarray, ring_cells: np.ndarray, ring_white: np.nda
 class CellReader:
     """Reads one data frame's cells; keeps the frame clock."""
 
-    def __init__(self, config: ReceiverConfig, first_burst_us: float, stride: int = 1) -> None:
-        """``stride``: the bursts come from the pixels on every stride-th row and column."""
+    def __init__(
+        self, config: ReceiverConfig, first_burst_us: float, stride: int = 1, sparse: bool = False
+    ) -> None:
+        """``stride``: the bursts come from the pixels on every stride-th row and column;
+        ``sparse``: a lit pixel fires fewer than ``decoder.dense_on_per_pixel`` ON events per
+        transition (``on_events_per_pixel``)."""
         if config.decoder.step_us <= 0:
             raise ValueError(
                 f"decoder step_us must be positive microseconds, got {config.decoder.step_us}"
             )
         self.config = config
         self.stride = stride
+        self.sparse = sparse
         geo = config.geometry
         self.n = geo.locator_side
         c = geo.cell_size_m(config.marker_size_m)
@@ -782,18 +787,22 @@ class CellReader:
     def _split(self, density: np.ndarray) -> _Split:
         """The payload of (n, n) densities split against the ring's white and black cells, on
         the scale, linear or square root, that separates its two clusters more
-        (``_Split.separation``).
+        (``_Split.separation``): ``fast``'s always, the ON-only profiles' where the readout is
+        ``sparse``, and on the linear scale otherwise.
 
         Where one cluster spreads far wider than the other, a threshold midway between their
         means falls among the wider one's cells. A readout that drops the excess of each
-        millisecond does it: a lit cell keeps a varying share of its pixels' events where a dark
-        one has few to lose, and ``fast``'s ON bursts, which bunch at the switch, lose a far
-        larger share than its OFF ones, which trail over milliseconds. The square root evens
-        such spreads (it is the scale on which a count's noise is the same at any rate); where
-        the lit cells all fire and the dark ones spread instead (blur lights a dark cell from
-        its switching neighbours), it widens the dark ones' spread, and the linear scale
-        separates better."""
+        millisecond does it: a lit cell keeps a varying share of its pixels' few events where a
+        dark one has few to lose, and ``fast``'s ON bursts, which bunch at the switch, lose a
+        far larger share than its OFF ones, which trail over milliseconds. The square root
+        evens such spreads (it is the scale on which a count's noise is the same at any rate);
+        where the lit cells all fire and the dark ones spread instead (blur lights a dark cell
+        from its switching neighbours), it widens the dark ones' spread, and the linear scale
+        separates better. An ON-only frame from a dense readout under motion can still separate
+        better on the root scale and read more bits wrong there, so it keeps the linear one."""
         linear = _split_levels(density, self._ring_cells, self._ring_white)
+        if not (self.both_polarities or self.sparse):
+            return linear
         root = _split_levels(np.sqrt(np.maximum(density, 0.0)), self._ring_cells, self._ring_white)
         return root if root.separation > _ROOT_MARGIN * linear.separation else linear
 

@@ -405,7 +405,7 @@ class Receiver:
         recheck_us = now + window if still_recheck else None
         self._track = track = Track(
             tracker,
-            CellReader(self.config, found.burst_us, stride),
+            CellReader(self.config, found.burst_us, stride, density < q.dense_on_per_pixel),
             next_frame=0 if found.moving else -int(window // self.config.frame_us) + 1,
             moving=found.moving,
             late_mark=late is not None and side >= late,
