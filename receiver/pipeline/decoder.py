@@ -36,9 +36,9 @@ Under hand-held motion five things keep the bits:
 
 The inner locator's known white and black cells give the reference densities and a score that
 says whether the marker is really there; the payload's own two clusters of densities place the
-threshold between them, and a cell's distance from it its confidence (on the linear or the
-square-root scale of the densities, whichever separates the clusters more: a capped readout
-spreads the lit cells' densities).
+threshold between them, and a cell's distance from it its confidence (``fast``, and the other
+profiles behind a sparse readout, on the linear or the square-root scale of the densities,
+whichever separates the clusters more: a capped readout spreads the lit cells' densities).
 
 The frame clock is re-estimated from the ON bursts of the locator's white cells, row by row, at
 every frame where the locator rises, so neither a display/receiver clock mismatch nor the
