@@ -39,17 +39,20 @@ def _frame(
     rng: np.random.Generator,
     late: np.ndarray | None = None,
     shift: tuple[float, float] = (0.0, 0.0),
+    m: int = 0,
+    polarity: int = 1,
 ):
-    """(t, p, u, v) of one ON burst per pixel of the lit ``cells`` (locator grid, 5x5 pixels a
-    cell) at its row's scan-out time with 150 us of jitter, plus one a few ms late on the
-    pixels of ``late``: cells that a neighbour's image sweeps over after the switch. ``shift``
-    moves every burst on the grid, as a pose that trails the camera does."""
+    """(t, p, u, v) of frame ``m``: one burst of sign ``polarity`` per pixel of the lit
+    ``cells`` (locator grid, 5x5 pixels a cell) at its row's scan-out time with 150 us of
+    jitter, plus one a few ms late on the pixels of ``late``: cells that a neighbour's image
+    sweeps over after the switch. ``shift`` moves every burst on the grid, as a pose that
+    trails the camera does."""
     n = reader.n
     side = np.arange(PX_PER_CELL) / PX_PER_CELL + 0.5 / PX_PER_CELL
     grid_u, grid_v = np.meshgrid(np.arange(n)[:, None] + side, np.arange(n)[:, None] + side)
     u, v = grid_u.ravel(), grid_v.ravel()  # every pixel centre of the locator
     lit = cells[v.astype(int), u.astype(int)]
-    t = reader.clock.mid(0) + (v - 0.5 - n / 2) * SLOPE_US + rng.normal(0, 150, u.size)
+    t = reader.clock.mid(m) + (v - 0.5 - n / 2) * SLOPE_US + rng.normal(0, 150, u.size)
     keep = lit.copy()
     if late is not None:
         swept = late[v.astype(int), u.astype(int)]
@@ -60,7 +63,7 @@ def _frame(
     f32 = np.float32
     return (
         t[order].astype(np.int64),
-        np.ones(order.size, np.int8),
+        np.full(order.size, polarity, np.int8),
         u[order].astype(f32),
         v[order].astype(f32),
     )
@@ -92,6 +95,30 @@ def test_read_gate_narrows_to_the_locator_bursts_and_drops_swept_cells():
     lo, hi = reader.gate
     assert wide[0] < lo < -300 and 300 < hi < 1500 < wide[1], reader.gate
     assert np.array_equal(read.bits, payload)
+
+
+def test_fast_read_gate_spans_both_switches_of_the_locator_not_the_bursts_before_them():
+    """``fast`` reads ON and OFF bursts: its gate spans the locator's ON switch (it lights up on
+    even refreshes) and its OFF switch (odd ones), not the OFF bursts that a moving camera's
+    edges start on the lit cells all through the refresh before they switch off."""
+    rng = np.random.default_rng(3)
+    reader = CellReader(ReceiverConfig(CAMERA, profile="fast"), first_burst_us=0.0)
+    reader.clock.slope_us = SLOPE_US
+    ring = locator_block(reader.config.geometry, np.zeros((16, 16), bool))
+    wide = reader.gate
+    t, p, u, v = _frame(reader, ring, rng)
+    reader._retime(0, t, p, u, v)
+    assert reader.gate == wide  # the ON switch alone: a narrow gate would cut the OFF one
+    t, p, u, v = _frame(reader, ring, rng, m=1, polarity=-1)
+    swept = rng.random(t.size) < 0.5  # half the lit pixels also fire as an edge passes
+    rows = reader.clock.mid(1) + (v[swept] - 0.5 - reader.n / 2) * SLOPE_US
+    t = np.r_[t, rows + rng.uniform(wide[0], 0.0, swept.sum())]
+    order = np.argsort(t)
+    p, u, v = (np.r_[a, a[swept]][order] for a in (p, u, v))
+    reader._narrow_gate(1, t[order].astype(np.int64), p, u, v)
+    lo, hi = reader.gate
+    assert -800 < lo < -300 and 300 < hi < 800, reader.gate
+    assert reader.gate_opens(2, np.eye(4)) is None  # the triage's cut is ON-only profiles'
 
 
 def test_a_grid_that_trails_by_a_third_of_a_cell_is_pulled_back_onto_the_ring():

@@ -15,8 +15,9 @@ moving one takes a pose every ``DecoderParams.step_us`` and divides by the cell'
 
 Under hand-held motion five things keep the bits:
 
-- the gate narrows to the spread of the locator's own ON bursts (a few hundred microseconds),
-  because a black cell that a white neighbour's image sweeps over fires later, not at the switch;
+- the gate narrows to the spread of the locator's own bursts (a few hundred microseconds; ON,
+  and for ``fast`` OFF too), because a black cell that a white neighbour's image sweeps over
+  fires later, not at the switch;
 - the frame is read as soon as that gate has passed, and the triage keeps each pixel's first
   burst of the frame besides its latest, because motion starts new ones within a refresh;
 - the clock takes each locator row's densest span of bursts, not their median, because motion
@@ -70,8 +71,11 @@ _PEAK_BINS = 6
 """A row's burst time is the centre of its densest ``_PEAK_BINS`` clock bins (300 us, about
 the spread of a still camera's switch)."""
 _SPREAD_PERCENT = 5.0
+_SWITCH_RUN = 0.1
+"""A switch's bursts begin where their smoothed excess last rose above this share of its peak
+(``_switch_span``)."""
 _GATE_PAD = 0.5
-"""The read gate spans the locator's central 90 % of ON bursts at the switch, widened by half
+"""The read gate spans the central 90 % of the locator's bursts at the switch, widened by half
 that span on each side (plus a clock bin) for the cells' stragglers."""
 _ALIGN_STEP = 0.1
 _ALIGN_SHIFTS = np.array(
@@ -201,9 +205,9 @@ def _grid_coords(t, xu, yu, step_edges, to_grid):
 
 
 @numba.njit(cache=True, nogil=True)
-def _locator_bursts(bursts, white, timing):
-    """(row, time after the row's predicted burst) of the ON ``bursts`` = (t, p, u, v) on the
-    locator's white cells inside the gate of ``timing`` (``_cell_bursts``)."""
+def _locator_bursts(bursts, white, timing, polarity):
+    """(row, time after the row's predicted burst) of the ``bursts`` = (t, p, u, v) of sign
+    ``polarity`` on the locator's white cells inside the gate of ``timing`` (``_cell_bursts``)."""
     t, p, u, v = bursts
     mid, slope, gate_lo, gate_hi = timing
     n = white.shape[0]
@@ -211,7 +215,7 @@ def _locator_bursts(bursts, white, timing):
     dts = np.empty(t.shape[0], np.float64)
     k = 0
     for i in range(t.shape[0]):
-        if p[i] <= 0 or not (0.0 <= u[i] < n and 0.0 <= v[i] < n):
+        if p[i] * polarity <= 0 or not (0.0 <= u[i] < n and 0.0 <= v[i] < n):
             continue
         r, c = int(v[i]), int(u[i])
         if not white[r, c]:
@@ -246,13 +250,24 @@ def _row_peaks(rows, dts, n, gate_lo, gate_hi, bin_us, width):
     return peak, count
 
 
-def _switch_span(dt: np.ndarray, lo: float, hi: float) -> tuple[float, float] | None:
+def _switch_span(
+    dt: np.ndarray, lo: float, hi: float, floored: bool = False
+) -> tuple[float, float] | None:
     """The span of the central ``100 - 2 * _SPREAD_PERCENT`` % of the bursts ``dt`` in
     ``[lo, hi]`` that lie above the even background of the bursts that motion starts (the
-    median count per ``_CLOCK_BIN_US`` bin); None without such bursts."""
+    median count per ``_CLOCK_BIN_US`` bin); None without such bursts. ``floored``: only those
+    from where that excess, smoothed over ``_PEAK_BINS``, last rose above ``_SWITCH_RUN`` of its
+    peak before the peak. A moving white cell's edges start OFF bursts all through the refresh
+    before it switches off, a floor that the median of the quiet tail after the switch does not
+    take off."""
     edges = np.arange(lo, hi + _CLOCK_BIN_US, _CLOCK_BIN_US)
     hist, _ = np.histogram(dt, edges)
     excess = np.maximum(hist - np.median(hist), 0.0)
+    if floored:
+        smooth = np.convolve(excess, np.ones(_PEAK_BINS) / _PEAK_BINS, mode="same")
+        below = np.flatnonzero(smooth[: int(np.argmax(smooth))] < _SWITCH_RUN * smooth.max())
+        if len(below):
+            excess[: below[-1] + 1] = 0.0
     if not excess.sum():
         return None
     share = np.cumsum(excess) / excess.sum()
@@ -502,8 +517,10 @@ class CellReader:
         self._on_only = config.data_every == 2
         self.gate = self._read_gate
         """Burst times (after their row's predicted burst) a cell reads, narrowed to the spread
-        of the locator's own bursts where only ON bursts count (``_narrow_gate``)."""
+        of the locator's own bursts of each polarity read (``_narrow_gate``)."""
         self._gate_fitted = False
+        self._spans: dict[int, np.ndarray] = {}
+        """The fitted spread of the locator's bursts per polarity (1: ON, -1: OFF)."""
         n = self.n
         self._grid_centre = np.array([[n / 2, n / 2, 1.0]])
         self._grid_corners = np.array([[0, 0, 1.0], [n, 0, 1], [0, n, 1], [n, n, 1]])
@@ -527,11 +544,13 @@ class CellReader:
     def gate_opens(self, m: int, T_cam_world: np.ndarray) -> tuple[float, float, float] | None:
         """(a, b, c): frame ``m``'s read gate opens at ``a + b * x + c * y`` at raw pixel (x, y)
         near the locator seen from ``T_cam_world`` (``EventTriage.cut_plane``), fitted to its
-        rows' gate times over a grid of points on it. None until the gate has been narrowed
-        (``fast`` never) and the clock's latest correction was within half the gate's lead on
-        the switch: a gate opening inside a switch would cut the switch's own bursts in two
-        (the first frames of a lock, timed on a few bursts, can be milliseconds off)."""
-        if not (self._gate_fitted and self.clock.correction_us <= -self.gate[0] / 2):
+        rows' gate times over a grid of points on it. None for ``fast`` (its OFF bursts count
+        too), and until the gate has been narrowed and the clock's latest correction was within
+        half the gate's lead on the switch: a gate opening inside a switch would cut the
+        switch's own bursts in two (the first frames of a lock, timed on a few bursts, can be
+        milliseconds off)."""
+        fitted = self._on_only and self._gate_fitted
+        if not (fitted and self.clock.correction_us <= -self.gate[0] / 2):
             return None
         rows = self._row_plane(T_cam_world)
         if rows is None:
@@ -624,6 +643,8 @@ class CellReader:
         u, v = _grid_coords(t, ev["xu"], ev["yu"], edges, to_grid)
         if self._rises(m):
             self._retime(m, t, p, u, v)
+        elif self.clock.timed:  # ``fast``'s locator switches off
+            self._narrow_gate(m, t, p, u, v)
         shifts = _ALIGN_SHIFTS if self._on_only and motion >= _ALIGN_MIN_MOTION else _NO_SHIFT
         count = self._count(t, p, u, v, m, shifts)
         mid = steps // 2
@@ -702,7 +723,7 @@ class CellReader:
 
     def _retime(self, m: int, t, p, u, v) -> None:
         """Fit the burst time and scan-out slope of frame ``m`` to its locator's white cells."""
-        rows, dts = self._locator_bursts(m, t, p, u, v, self._search_gate)
+        rows, dts = self._locator_bursts(m, t, p, u, v, self._search_gate, 1)
         if len(rows) < _MIN_CLOCK_EVENTS:
             return
         gate = self._search_gate
@@ -715,33 +736,39 @@ class CellReader:
         else:
             return
         self.clock.observe(m, self.clock.mid(m) + offset, self.clock.slope_us + slope)
-        if self._on_only:
-            self._narrow_gate(m, t, p, u, v)
+        self._narrow_gate(m, t, p, u, v)
 
-    def _locator_bursts(self, m: int, t, p, u, v, gate: tuple[float, float]):
-        """(row, time after the row's predicted burst) of frame ``m``'s ON bursts on the
-        locator's white cells inside ``gate``."""
+    def _locator_bursts(self, m: int, t, p, u, v, gate: tuple[float, float], polarity: int):
+        """(row, time after the row's predicted burst) of frame ``m``'s bursts of sign
+        ``polarity`` on the locator's white cells inside ``gate``."""
         mid, slope = self.clock.mid(m), self.clock.slope_us
-        return _locator_bursts((t, p, u, v), self._white, (mid, slope, *gate))
+        return _locator_bursts((t, p, u, v), self._white, (mid, slope, *gate), polarity)
 
     def _narrow_gate(self, m: int, t, p, u, v) -> None:
-        """Fit the read gate to the spread of the locator's white-cell ON bursts around their
-        rows' burst times. A wider gate lets a moving camera read cells swept by their
-        neighbours' images after the switch (0.5 px/ms crosses a 4 px cell in 8 ms), while a
-        cell under the display's switch fires within its response time."""
+        """Fit the read gate to the spread of the locator's white-cell bursts around their
+        rows' burst times: ON where the locator switches on, OFF where ``fast``'s switches
+        off; ``fast``'s gate spans both once both are fitted. A wider gate lets a moving camera
+        read cells swept by their neighbours' images after the switch (0.5 px/ms crosses a
+        4 px cell in 8 ms, and ``fast``'s refresh-long gate let such bursts outnumber the
+        switch's), while a cell under the display's switch fires within its response time."""
+        polarity = 1 if self._rises(m) else -1
         lo, hi = self._read_gate
-        dt = self._locator_bursts(m, t, p, u, v, self._read_gate)[1]
+        dt = self._locator_bursts(m, t, p, u, v, self._read_gate, polarity)[1]
         if len(dt) < _MIN_CLOCK_EVENTS:
             return
-        span = _switch_span(dt, lo, hi)
+        span = _switch_span(dt, lo, hi, floored=polarity < 0)
         if span is None:
             return
         q_lo, q_hi = span
         pad = _GATE_PAD * (q_hi - q_lo) + _CLOCK_BIN_US
         fit = np.array([max(q_lo - pad, lo), min(q_hi + pad, hi)])
-        if self._gate_fitted:
-            fit = 0.7 * np.array(self.gate) + 0.3 * fit
-        self.gate, self._gate_fitted = (float(fit[0]), float(fit[1])), True
+        if polarity in self._spans:
+            fit = 0.7 * self._spans[polarity] + 0.3 * fit
+        self._spans[polarity] = fit
+        if len(self._spans) == (1 if self._on_only else 2):
+            spans = np.array(list(self._spans.values()))
+            self.gate = float(spans[:, 0].min()), float(spans[:, 1].max())
+            self._gate_fitted = True
 
     def _classify(self, m: int, density: np.ndarray, pixels: int) -> FrameRead:
         """Bits from the cells' (2, n, n) ON and OFF burst densities, against the ring's white
