@@ -522,6 +522,8 @@ class CellReader:
         self._gate_fitted = False
         self._spans: dict[int, np.ndarray] = {}
         """The fitted spread of the locator's bursts per polarity (1: ON, -1: OFF)."""
+        self._moving = False
+        """Whether the grid moved in the latest frame read (``_gate_now``)."""
         n = self.n
         self._grid_centre = np.array([[n / 2, n / 2, 1.0]])
         self._grid_corners = np.array([[0, 0, 1.0], [n, 0, 1], [0, n, 1], [n, n, 1]])
@@ -539,8 +541,14 @@ class CellReader:
         fast motion, waiting for a fit of the period would cost the first frames of a lock."""
         half = abs(self.clock.slope_us) * self.n / 2
         mid = self.clock.mid(m)
-        lo, hi = self.gate if self.clock.timed else self._search_gate
+        lo, hi = self._gate_now() if self.clock.timed else self._search_gate
         return int(mid - half + lo), int(mid + half + hi) + 1
+
+    def _gate_now(self) -> tuple[float, float]:
+        """The gate frames are read through: the narrowed one, but for ``fast`` only while the
+        grid moves. A still camera starts no swept bursts, and a dense still ``fast`` link read
+        through the narrowed gate loses its switches' stragglers."""
+        return self.gate if self._on_only or self._moving else self._read_gate
 
     def gate_opens(self, m: int, T_cam_world: np.ndarray) -> tuple[float, float, float] | None:
         """(a, b, c): frame ``m``'s read gate opens at ``a + b * x + c * y`` at raw pixel (x, y)
@@ -634,6 +642,7 @@ class CellReader:
         t0, t1 = self.window(m)
         motion = self._grid_motion(pose_at, t1)
         still = motion < _STILL_CELLS
+        self._moving = not still
         steps = 1  # a still grid needs one pose; a moving one a pose per step
         if not still:
             steps = max(1, int(np.ceil((t1 - t0) / self.config.decoder.step_us)))
@@ -664,7 +673,7 @@ class CellReader:
         by each shift."""
         mid, slope, margin = self.clock.mid(m), self.clock.slope_us, self.config.decoder.cell_margin
         on_only = self._on_only
-        timing = (mid, slope, *self.gate)
+        timing = (mid, slope, *self._gate_now())
         return _cell_bursts((t, p, u, v), self.n, timing, on_only, margin, shifts)
 
     def _inner_pixels(self, T_cam_world: np.ndarray, to_grid: np.ndarray, still: bool):
