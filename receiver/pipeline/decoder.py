@@ -546,9 +546,11 @@ class CellReader:
 
     def _gate_now(self) -> tuple[float, float]:
         """The gate frames are read through: the narrowed one, but for ``fast`` only while the
-        grid moves. A still camera starts no swept bursts, and a dense still ``fast`` link read
-        through the narrowed gate loses its switches' stragglers."""
-        return self.gate if self._on_only or self._moving else self._read_gate
+        grid moves or behind a ``sparse`` readout. A dense still ``fast`` link read through the
+        narrowed gate loses its switches' stragglers, while a thinned one's few events per
+        switch stand out of the refresh's stray bursts only inside it."""
+        narrow = self._on_only or self._moving or self.sparse
+        return self.gate if narrow else self._read_gate
 
     def gate_opens(self, m: int, T_cam_world: np.ndarray) -> tuple[float, float, float] | None:
         """(a, b, c): frame ``m``'s read gate opens at ``a + b * x + c * y`` at raw pixel (x, y)
