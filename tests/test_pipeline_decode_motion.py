@@ -97,21 +97,6 @@ def test_read_gate_narrows_to_the_locator_bursts_and_drops_swept_cells():
     assert np.array_equal(read.bits, payload)
 
 
-def test_a_row_timed_on_another_switch_does_not_tilt_the_scan_out_slope():
-    """A lock's first frame fits the scan-out slope from each locator row's densest span of
-    bursts in the wide search gate; one row whose densest span is the next switch's, at the
-    gate's end, must not tilt it."""
-    rng = np.random.default_rng(4)
-    reader = CellReader(ReceiverConfig(CAMERA), first_burst_us=0.0)  # no slope fitted yet
-    cells = locator_block(reader.config.geometry, rng.integers(0, 2, (16, 16)).astype(bool))
-    t, p, u, v = _frame(reader, cells, rng)
-    first_row = v < 1
-    t[first_row] += int(reader._search_gate[1] + reader.n / 2 * SLOPE_US) - 500
-    order = np.argsort(t)
-    reader._retime(0, *(a[order] for a in (t, p, u, v)))
-    assert reader.clock.slope_us == pytest.approx(SLOPE_US, rel=0.05)
-
-
 def test_fast_read_gate_spans_both_switches_of_the_locator_not_the_bursts_before_them():
     """``fast`` reads ON and OFF bursts: its gate spans the locator's ON switch (it lights up on
     even refreshes) and its OFF switch (odd ones), not the OFF bursts that a moving camera's

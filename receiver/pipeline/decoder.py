@@ -56,7 +56,6 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numba
 import numpy as np
-from scipy.stats import theilslopes
 
 from eventocc.receiver.pipeline.buffer import EventColumns
 from eventocc.receiver.pipeline.config import ReceiverConfig
@@ -742,9 +741,7 @@ class CellReader:
         peak, count = _row_peaks(rows, dts, self.n, *gate, _CLOCK_BIN_US, _PEAK_BINS)
         rows = np.flatnonzero(count >= 3)
         if len(rows) >= 3:
-            # Theil-Sen: a row whose densest span is a moving edge's, or a neighbouring
-            # switch's at the search gate's end, does not tilt the scan-out slope.
-            slope, offset, *_ = theilslopes(peak[rows], rows - self.n / 2)
+            slope, offset = np.polyfit(rows - self.n / 2, peak[rows], 1)
         elif len(rows):
             slope, offset = 0.0, float(np.median(peak[rows]))
         else:
