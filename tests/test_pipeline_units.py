@@ -37,7 +37,13 @@ from eventocc.receiver.pipeline.detector import (
 from eventocc.receiver.pipeline.filters import EventFilter
 from eventocc.receiver.pipeline.locate import Box
 from eventocc.receiver.pipeline.metrics import pose_errors, umeyama
-from eventocc.receiver.pipeline.pose import DARK_SIDE, PoseHistory, project_ideal, refine_pose
+from eventocc.receiver.pipeline.pose import (
+    DARK_SIDE,
+    PoseHistory,
+    pnp,
+    project_ideal,
+    refine_pose,
+)
 from eventocc.receiver.pipeline.report import FrameTruth
 from eventocc.receiver.pipeline.triage import EventTriage
 from eventocc.receiver.poses import make_pose
@@ -110,6 +116,19 @@ def test_a_square_passes_at_any_view_a_skewed_quadrilateral_does_not(view_deg):
     sheared = quad + np.array([[0, 0], [0, 0], [100, 0], [100, 0]])
     with pytest.raises(MarkerNotFound, match=r"not right angles|not square"):
         check_quadrilateral(sheared, cfg.detector, cam)
+
+
+def test_pnp_solves_a_square_seen_head_on():
+    """OpenCV's IPPE returns NaN for these corners of a still test scene's locator: a square
+    centred on the principal point, its sides equal to within 1e-4 px."""
+    cam = CameraModel(346, 260, K, np.zeros(5))
+    lo, hi = 0.02472727272727273, 0.2472727272727273
+    world = np.array([[lo, lo, 0], [hi, lo, 0], [hi, hi, 0], [lo, hi, 0]])
+    near, far = 116.88774108886719, 229.11233520507812
+    top, bottom = 73.88774108886719, 186.1122589111328
+    corners = np.array([[near, top], [far, top], [far, bottom], [near, bottom]])
+    T = pnp(corners, world, cam)
+    assert np.allclose(project_ideal(T, K, world), corners, atol=1e-3)
 
 
 def test_refine_pose_recovers_a_perturbed_pose_from_edge_points():

@@ -23,6 +23,9 @@ def pnp(corners_px: np.ndarray, world: np.ndarray, camera: CameraModel) -> np.nd
     obj = np.ascontiguousarray(world, np.float64).reshape(-1, 1, 3)
     img = np.ascontiguousarray(corners_px, np.float64).reshape(-1, 1, 2)
     ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE)
+    if ok and not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
+        # IPPE's closed form divides zero by zero for a square seen exactly head-on.
+        ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, camera.dist, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         raise ValueError("PnP failed on the detected corners")
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, camera.dist, rvec, tvec)
