@@ -405,6 +405,24 @@ def _detect_at(d: SceneDraw, after_us: int, **detector):
     return lambda: detect(window, config), scene.camera.project(world @ T[:3, :3].T + T[:3, 3])
 
 
+def test_a_marker_that_just_appeared_is_shaped_by_the_pixels_that_blinked(monkeypatch):
+    """The suite's scene 193 (`fast`, 14 px per cell, a dense sensor, an LCD rising over 3.5
+    ms) 52.5 ms after the marker appeared: its static rings fired once as it appeared, in phase
+    with the locator's blink, and pulled the quadrilateral a cell or two out; the lock on it
+    was 29 cm off."""
+    find, truth = _detect_at(draw(0, 193), 52_500)
+    assert np.abs(find().corners_px - truth).max() < 1.0
+    image = detector.burst_image
+    monkeypatch.setattr(  # every pixel in phase counts as blinking
+        detector, "burst_image", lambda *a: (lambda img, _: (img, img > 0))(*image(*a))
+    )
+    try:
+        off = np.abs(find().corners_px - truth).max()
+    except MarkerNotFound:
+        off = math.inf
+    assert off > 5.0
+
+
 BLURRED = {  # scene 32 of the suite's first draw, where detection first met the problem
     "profile": "fast",
     "cells": 32,

@@ -351,6 +351,39 @@ def test_locator_band_is_the_outer_cell_of_the_blinking_square():
     assert not band[5, 5]
 
 
+def test_burst_image_tells_a_pixel_that_fires_at_two_bursts_from_one_switch():
+    """A static ring that lit up when the marker appeared fires several ON events in phase
+    once; a blinking cell fires at every burst, however few events each time."""
+    period = 10_000
+    events = sorted(
+        [(10_000, 1), (20_000, 1)]  # blinks: one event at each of two bursts
+        + [(20_000 + 50 * i, 2) for i in range(6)]  # one switch, six events
+        + [(15_000, 3), (25_000, 3)]  # fires twice, in antiphase
+    )
+    t, x = zip(*events, strict=True)
+    image, blinks = detector.burst_image(
+        [make_events(t, x, [0] * len(t), [1] * len(t))], 0.0, period, np.ones((1, 4), np.uint8)
+    )
+    assert image[0, 1] > 0 and image[0, 2] > 0 and image[0, 3] == 0
+    assert blinks.tolist() == [[False, True, False, False]]
+
+
+def test_in_company_drops_stray_pixels_and_keeps_a_sparse_square_and_its_corners():
+    rng = np.random.default_rng(0)
+    lit = np.zeros((80, 80), bool)
+    lit[20:60, 20:60] = rng.random((40, 40)) < 0.3  # 10 cells of 4 px, sparse
+    lit[20, 20] = lit[59, 59] = True
+    strays = [(8, 8), (21, 66), (70, 40)]
+    for y, x in strays:
+        lit[y, x] = True
+    kept = detector._in_company(lit, 4.0)
+    assert not any(kept[y, x] for y, x in strays)
+    assert np.array_equal(kept[20:60, 20:60], lit[20:60, 20:60])
+    alone = np.zeros_like(lit)
+    alone[tuple(zip(*strays, strict=True))] = True
+    assert not detector._in_company(alone, 4.0).any()
+
+
 def test_frame_clock_follows_a_slightly_fast_display():
     clock = FrameClock(first_burst_us=1000.0, frame_us=10_000.0, rows=18)
     assert not clock.timed

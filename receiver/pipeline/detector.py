@@ -395,10 +395,16 @@ def orient(
     return np.roll(quad, -best, axis=0), float(readings[best] - readings[runner_up])
 
 
+_IN_PHASE = 0.3
+"""How near a burst, in periods, an ON event fires in phase with it (``burst_image``)."""
+
+
 @numba.njit(cache=True, nogil=True)
-def _pixel_harmonics(t, x, y, p, x0, y0, period_us, acc):
-    """Add to ``acc`` (rows, columns, 3) per pixel of the box from (x0, y0): the ON events' DFT
-    at the blink frequency (re, im) and their count; a pixel's three sums share a cache line."""
+def _pixel_harmonics(t, x, y, p, x0, y0, period_us, burst_us, acc):
+    """Add to ``acc`` (rows, columns, 5) per pixel of the box from (x0, y0): the ON events' DFT
+    at the blink frequency (re, im), their count, the index of the burst (at ``burst_us`` +
+    a whole number of periods) of its first one within ``_IN_PHASE`` of one, and 1 once
+    another such lies at another burst; a pixel's sums share a cache line."""
     y1, x1 = y0 + acc.shape[0], x0 + acc.shape[1]
     for i in range(t.shape[0]):
         if p[i] > 0 and x0 <= x[i] < x1 and y0 <= y[i] < y1:
@@ -407,6 +413,14 @@ def _pixel_harmonics(t, x, y, p, x0, y0, period_us, acc):
             acc[yi, xi, 0] += _COS[k]
             acc[yi, xi, 1] -= _SIN[k]
             acc[yi, xi, 2] += 1.0
+            phase = (t[i] - burst_us) / period_us
+            burst = math.floor(phase + 0.5)
+            if abs(phase - burst) > _IN_PHASE:
+                continue
+            if math.isnan(acc[yi, xi, 3]):
+                acc[yi, xi, 3] = burst
+            elif burst != acc[yi, xi, 3]:
+                acc[yi, xi, 4] = 1.0
 
 
 def burst_image(
@@ -415,36 +429,42 @@ def burst_image(
     period_us: float,
     mask: np.ndarray,
     periods: int = 2,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """How strongly each pixel of ``mask`` brightens in step with the bursts of the last
     ``periods`` blinks: 0 where it does not, else its in-phase ON events over those of the
-    brightest tenth of such pixels, at most 1.
+    brightest tenth of such pixels, at most 1; and where it does so at more than one burst.
 
     A pixel counts when its ON events keep one phase (harmonic ratio >= 0.5) close to the burst's:
-    within 0.3 period, because the display's scan-out spreads the rows' bursts over about 0.45
-    period and the pixel response delays them further, while cells blinking in antiphase sit
-    half a period away. Edges swept by camera motion fire at any phase. The strength tells a
-    lit cell from a dark one that blur lights a little: the sensor answers the log of the light,
-    so a dark cell that gets a few per cent of its neighbour's fires in phase as well, with
-    fewer events."""
+    within ``_IN_PHASE`` of a period, because the display's scan-out spreads the rows' bursts
+    over about 0.45 period and the pixel response delays them further, while cells blinking in
+    antiphase sit half a period away. Edges swept by camera motion fire at any phase. The
+    strength tells a lit cell from a dark one that blur lights a little: the sensor answers the
+    log of the light, so a dark cell that gets a few per cent of its neighbour's fires in phase
+    as well, with fewer events. Only a pixel that fires at two bursts or more is known to
+    blink: where the marker appeared within the window, every pixel it lit fired once, the
+    static rings included, and the several events of that one switch keep its phase as well
+    as a blink's."""
     since = int(parts[-1]["t"][-1] - periods * period_us)
     x, y, w, h = cv2.boundingRect(mask)
-    acc = np.zeros((h, w, 3))
+    acc = np.zeros((h, w, 5))
+    acc[..., 3] = np.nan  # no burst yet
     for ev in parts:
         if ev["t"][-1] >= since:
             ev = ev[first_at(ev["t"], since) :]
-            _pixel_harmonics(ev["t"], ev["x"], ev["y"], ev["p"], x, y, period_us, acc)
-    re, im, count = np.moveaxis(acc, -1, 0)
+            _pixel_harmonics(ev["t"], ev["x"], ev["y"], ev["p"], x, y, period_us, burst_us, acc)
+    re, im, count, _, repeated = np.moveaxis(acc, -1, 0)
     amplitude = np.hypot(re, im)
     lag = np.angle((re + 1j * im) * np.exp(2j * np.pi * burst_us / period_us))
-    inside = (count >= 2) & (amplitude >= 0.5 * count) & (np.abs(lag) <= 0.3 * 2 * np.pi)
+    inside = (count >= 2) & (amplitude >= 0.5 * count) & (np.abs(lag) <= _IN_PHASE * 2 * np.pi)
     inside &= mask[y : y + h, x : x + w] > 0
     strength = np.where(inside, amplitude * np.cos(lag), 0.0)
     image = np.zeros(mask.shape, np.float32)
+    blinks = np.zeros(mask.shape, bool)
     if inside.any():
         top = np.percentile(strength[inside], 90)
         image[y : y + h, x : x + w] = np.clip(strength / top, 0.0, 1.0) * inside
-    return image
+        blinks[y : y + h, x : x + w] = inside & (repeated > 0)
+    return image, blinks
 
 
 def detect(events: np.ndarray | list[np.ndarray], config: ReceiverConfig) -> Detection:
@@ -625,7 +645,7 @@ def _still_in_region(
 ) -> Detection:
     """The still path inside the blinking region ``mask``: the locator band's phase (``band``,
     by default the region's outer cell), the phase-locked image, its quadrilateral read the
-    way the 'L' stands, refined to its edges."""
+    way the 'L' stands (``_oriented_quad``), refined to its edges."""
     params, cam = config.detector, config.camera
     if band is None:
         band = locator_band(mask, config.geometry.locator_side)
@@ -639,24 +659,22 @@ def _still_in_region(
             f"Hz (harmonic ratio {ratio:.2f}); {_CHECK_BLINK}"
         )
     period = 1e6 / config.blink_hz
-    img = burst_image(parts, burst, period, mask)
-    if np.count_nonzero(img) < 16:
-        raise MarkerNotFound("spatial: too few positive events at the blink phase")
+    img, blinks = burst_image(parts, burst, period, mask)
     lit = img > 0
-    quad = quadrilateral(outline(lit))
-    check_quadrilateral(quad, params, cam)
-    # Which pixels fire in phase reads a sparse sensor's 'L' best, how strongly they fire a
-    # blurred one's: the clearer reading decides.
-    corners, score = max(
-        (orient(quad, im, config.geometry) for im in (lit, img)), key=lambda o: o[1]
-    )
-    checked = get_profile(config.profile).framed
-    least = params.min_checked_orientation_score if checked else params.min_still_orientation_score
-    if score < least:
-        raise MarkerNotFound(
-            f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
-        )
-    refined = refine_corners(corners, lit, config.geometry, cam)
+    cell_px = math.sqrt(np.count_nonzero(mask)) / config.geometry.locator_side
+    try:
+        corners, score = _oriented_quad(lit, img, cell_px, config)
+        refined = refine_corners(corners, lit, config.geometry, cam)
+    except MarkerNotFound as miss:
+        # The marker may have appeared within the window and lit its static rings once: the
+        # pixels that blinked twice give the quadrilateral then, if the edges confirm it.
+        try:
+            corners, score = _oriented_quad(blinks, img, cell_px, config)
+        except MarkerNotFound:
+            raise miss from None
+        refined = refine_corners(corners, blinks, config.geometry, cam)
+        if refined is corners:
+            raise miss from None
     # The burst time refers to the latest whole period inside the window.
     last = burst + np.floor((t_end - burst) / period) * period
     T = _solve_pnp(refined, config)
@@ -671,6 +689,52 @@ def _still_in_region(
         np.zeros(2),
         refined=refined is not corners,
     )
+
+
+def _oriented_quad(
+    shaping: np.ndarray, img: np.ndarray, cell_px: float, config: ReceiverConfig
+) -> tuple[np.ndarray, float]:
+    """The quadrilateral of the pixels ``shaping`` (those in company: ``_in_company``), its
+    corners read the way the 'L' stands in the phase-locked image ``img``, and that reading's
+    score."""
+    params = config.detector
+    shaping = _in_company(shaping, cell_px)
+    if np.count_nonzero(shaping) < 16:
+        raise MarkerNotFound("spatial: too few positive events at the blink phase")
+    quad = quadrilateral(outline(shaping))
+    check_quadrilateral(quad, params, config.camera)
+    # Which pixels fire in phase reads a sparse sensor's 'L' best, how strongly they fire a
+    # blurred one's: the clearer reading decides.
+    corners, score = max(
+        (orient(quad, im, config.geometry) for im in (img > 0, img)), key=lambda o: o[1]
+    )
+    checked = get_profile(config.profile).framed
+    least = params.min_checked_orientation_score if checked else params.min_still_orientation_score
+    if score < least:
+        raise MarkerNotFound(
+            f"spatial: no inner-locator 'L' found (score {score:.2f}); check --cells"
+        )
+    return corners, score
+
+
+_COMPANY = 0.1
+"""A lit pixel shapes the still path's quadrilateral when the lit pixels in the cell around
+it are at least this share of a lit pixel's median count, and two (``_in_company``)."""
+
+
+def _in_company(lit: np.ndarray, cell_px: float) -> np.ndarray:
+    """The pixels of ``lit`` with lit neighbours around them (``_COMPANY``).
+
+    The quadrilateral is the hull of every lit pixel, and a noise event or two in phase
+    outside the marker pulls a corner out by cells. A lit cell keeps its pixels company
+    however sparse the sensor, where a stray pixel is alone; a locator corner's pixels see a
+    quarter of their cell lit. A wider box would reach into the marker from the strays near
+    it."""
+    if not lit.any():
+        return lit
+    k = max(3, round(cell_px) | 1)
+    count = cv2.boxFilter(lit.astype(np.float32), -1, (k, k), normalize=False)
+    return lit & (count >= max(2.0, _COMPANY * np.median(count[lit])))
 
 
 def _period_match(heat: np.ndarray, triplets: np.ndarray, mask: np.ndarray) -> float:
