@@ -119,16 +119,18 @@ def test_fast_read_gate_spans_both_switches_of_the_locator_not_the_bursts_before
     lo, hi = reader.gate
     assert -800 < lo < -300 and 300 < hi < 800, reader.gate
     assert reader.gate_opens(2, np.eye(4)) is None  # the triage's cut is ON-only profiles'
-    # The narrowed gate reads a moving grid's frames, and a still one's behind a sparse
-    # readout; a dense still one's keep the whole read gate.
+    # The narrowed gate reads a moving grid's frames; a still one's read through the whole
+    # read gate, and behind a sparse readout through the narrowed one too, where it separates
+    # the cells better.
     mid, half = reader.clock.mid(2), abs(reader.clock.slope_us) * reader.n / 2
-    narrow = (int(mid - half + lo), int(mid + half + hi) + 1)
     reader._moving = True
-    assert reader.window(2) == narrow
+    assert reader.window(2) == (int(mid - half + lo), int(mid + half + hi) + 1)
+    assert reader._gates() == [reader.gate]
     reader._moving = False
     assert reader.window(2) == (int(mid - half + wide[0]), int(mid + half + wide[1]) + 1)
+    assert reader._gates() == [wide]
     reader.sparse = True
-    assert reader.window(2) == narrow
+    assert reader._gates() == [wide, reader.gate]
 
 
 def test_a_grid_that_trails_by_a_third_of_a_cell_is_pulled_back_onto_the_ring():
