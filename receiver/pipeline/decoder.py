@@ -671,7 +671,9 @@ class CellReader:
         mid = steps // 2
         inner = self._inner_pixels(poses[mid], to_grid[mid], still)
         counts = [self._count(t, p, u, v, m, shifts, gate) for gate in self._gates()]
-        count = max(counts, key=lambda c: self._split(c[0].sum(axis=0) / inner).separation)
+        count = counts[0]
+        if len(counts) > 1:  # the payload that separates best (``_gates``); rare: split only then
+            count = max(counts, key=lambda c: self._split(c[0].sum(axis=0) / inner).separation)
         best = self._sharpest(count.sum(axis=1) / inner)
         read = self._classify(m, count[best] / inner, int(count[best].sum()))
         if not self.clock.timed:
