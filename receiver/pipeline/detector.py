@@ -244,14 +244,18 @@ def _rising_times(t, x, y, p, mask):
     return out[:k]
 
 
+def _mask_cell_px(region: np.ndarray, locator_side: int) -> float:
+    """A cell's side in pixels, roughly, from a blinking region about the inner locator."""
+    return math.sqrt(np.count_nonzero(region)) / locator_side
+
+
 def locator_band(region: np.ndarray, locator_side: int) -> np.ndarray:
     """The outer one-cell band of the blinking region: the inner locator ring alone.
 
     The phase must come from the ring, not the payload: in ``fast``, payload cells whose symbol
     bit is the same in successive frames (header fields) toggle on every refresh too, in
     antiphase with the locator after each all-black key refresh."""
-    cell_px = np.sqrt(np.count_nonzero(region)) / locator_side
-    k = 2 * max(1, round(cell_px)) + 1  # erodes one cell from every side
+    k = 2 * max(1, round(_mask_cell_px(region, locator_side))) + 1  # erodes a cell per side
     inner = cv2.erode(region, np.ones((k, k), np.uint8))
     return region & (1 - inner)
 
@@ -661,7 +665,7 @@ def _still_in_region(
     period = 1e6 / config.blink_hz
     img, blinks = burst_image(parts, burst, period, mask)
     lit = img > 0
-    cell_px = math.sqrt(np.count_nonzero(mask)) / config.geometry.locator_side
+    cell_px = _mask_cell_px(mask, config.geometry.locator_side)
     try:
         corners, score = _oriented_quad(lit, img, cell_px, config)
         refined = refine_corners(corners, lit, config.geometry, cam)
