@@ -174,3 +174,34 @@ def test_a_frame_read_before_any_burst_timed_the_clock_is_not_seen():
     assert untimed.locator_score == 0.0
     timed = reader.read(0, _white_bursts(reader, T, cells, m=0), _still(T))
     assert timed.locator_score > 0.9 and np.array_equal(timed.bits, payload)
+
+
+def test_a_fast_cell_that_just_went_dark_reads_in_its_switch_on_alone():
+    # A display whose fall outlasts the refresh (an LCD falling over 4.4 ms at 165 Hz): a fall
+    # starts OFF bursts in a third of its pixels within the gate, and as many again late,
+    # in the next refresh's gate, where that cell can only switch on.
+    reader = CellReader(replace(CONFIG, profile="fast"), first_burst_us=0.0)
+    geo, rng = reader.config.geometry, np.random.default_rng(7)
+    ring_white = locator_block(geo, np.zeros((16, 16), bool))
+    lit = rng.integers(0, 2, (16, 16)).astype(bool)
+    late = np.zeros((16, 16))
+    reads = []
+    for m in range(2):
+        toggles = rng.integers(0, 2, (16, 16)).astype(bool)
+        on = np.where(toggles & ~lit, 0.9, 0.0)
+        off = np.where(toggles & lit, 0.35, 0.0) + late
+        late = np.where(toggles & lit, 0.3, 0.0)
+        lit ^= toggles
+        ring = ring_white if m % 2 == 0 else np.zeros_like(ring_white)
+        density = np.stack(
+            [locator_block(geo, on) + ring, locator_block(geo, off) + (ring_white ^ ring) * 0.35]
+        )
+        density += rng.uniform(0.0, 0.05, density.shape)
+        reads.append((m, density, toggles))
+    for m, density, toggles in reads:
+        read = reader._classify(m, density, 1000)
+        assert np.array_equal(read.bits, toggles)
+    # Read without the frame before, the late bursts pass for switches.
+    fresh = CellReader(replace(CONFIG, profile="fast"), first_burst_us=0.0)
+    m, density, toggles = reads[1]
+    assert (fresh._classify(m, density, 1000).bits != toggles).sum() >= 10

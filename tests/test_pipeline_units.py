@@ -579,7 +579,7 @@ def test_fast_reads_each_polarity_less_what_the_neighbours_switching_its_way_spi
 
     # The two polarities added up, a dark cell between a rising and a falling neighbour
     # reads as much as a toggle.
-    def summed(self: CellReader, on: np.ndarray, off: np.ndarray, bits: np.ndarray):
+    def summed(self: CellReader, on: np.ndarray, off: np.ndarray, bits: np.ndarray, shown):
         return [decoder._less_spill(on + off, self._lit(bits))]
 
     monkeypatch.setattr(CellReader, "_levels", summed)

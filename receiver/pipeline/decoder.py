@@ -33,7 +33,9 @@ Under hand-held motion five things keep the bits:
   (bit 1) fires ON or OFF in that refresh, an untoggled one fires none. The inner locator is
   shown on even refreshes only, so its white cells toggle every refresh and read as 1. Blur
   makes a dark cell fire with its switching neighbours, each in its own direction, so a cell
-  can read as the stronger of its two polarities (``CellReader._levels``).
+  can read as the stronger of its two polarities (``CellReader._levels``). A cell that switched
+  in the refresh before can only switch back, so it reads in that polarity alone: a display
+  whose fall outlasts the refresh starts some of a fall's OFF bursts in the next one.
 
 The inner locator's known white and black cells give the reference densities and a score that
 says whether the marker is really there; the payload's own two clusters of densities place the
@@ -521,6 +523,9 @@ class CellReader:
         self._gate_fitted = False
         self._spans: dict[int, np.ndarray] = {}
         """The fitted spread of the locator's bursts per polarity (1: ON, -1: OFF)."""
+        self._switched: tuple[int, np.ndarray] | None = None
+        """(m, (n - 2, n - 2) int8): which way ``fast``'s payload cells switched in frame m, 1 on,
+        -1 off, 0 not read as toggled (``_note_switches``)."""
         self._moving = False
         """Whether the grid moved in the latest frame read (``_gate_now``)."""
         n = self.n
@@ -817,33 +822,69 @@ class CellReader:
         score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
         turns = turn_readings(both, self.config.geometry) / max(float(ring.mean()), 1e-9)
         bits = self._split(both).bits
+        shown = self._shown_before(m)
         for _ in range(2):  # the second pass fits the spill on the bits the first corrected
-            split, *others = (self._split(level) for level in self._levels(on, off, bits))
+            levels = self._levels(on, off, bits, shown)
+            split, *others = (self._split(level) for level in levels)
             for other in others:
                 if other.separation > _APART_MARGIN * split.separation:
                     split = other
             bits = split.bits
+        if self.both_polarities:
+            self._note_switches(m, on, off, bits, shown)
         sure = self.config.decoder.sure_contrast * max(split.white_ref - split.black_ref, 1e-9)
         confidence = np.clip(np.abs(split.payload - split.threshold) / sure, 0.0, 1.0)
         return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
 
-    def _levels(self, on: np.ndarray, off: np.ndarray, bits: np.ndarray) -> list[np.ndarray]:
+    def _levels(
+        self, on: np.ndarray, off: np.ndarray, bits: np.ndarray, shown: np.ndarray
+    ) -> list[np.ndarray]:
         """(n, n) cell levels less what the neighbours spill into them (``_less_spill``),
         given a first reading ``bits``: one map, or for ``fast`` two, the second taken where it
         separates the cells' two clusters clearly better (``_APART_MARGIN``).
 
         ON-only profiles: the ON densities less the lit neighbours' spill. ``fast``: the two
-        polarities added up less the spill of every switching neighbour, then the stronger of
-        the two, each less the spill of the neighbours that switched its way. A toggling cell
-        fires the one polarity of its own switch, while a dark cell fires with each neighbour
-        in that neighbour's direction: between a rising and a falling one it fires both, which
-        the sum adds up."""
+        polarities added up less the spill of every switching neighbour, then each cell in the
+        one polarity it can switch in, less the spill of the neighbours that switched that
+        way: ON where it is ``shown`` dark (-1), OFF where lit (1), and where that is not known
+        (0) the stronger of the two. A toggling cell fires the one polarity of its own switch,
+        while a dark cell fires with each neighbour in that neighbour's direction: between a
+        rising and a falling one it fires both, which the sum adds up."""
         lit = self._lit(bits)
         if not self.both_polarities:
             return [_less_spill(on, lit)]
         rose = lit & (on >= off)
-        apart = np.maximum(_less_spill(on, rose), _less_spill(off, lit & ~rose))
-        return [_less_spill(on + off, lit), apart]
+        on_level, off_level = _less_spill(on, rose), _less_spill(off, lit & ~rose)
+        either = np.maximum(on_level, off_level)
+        own = np.where(shown < 0, on_level, np.where(shown > 0, off_level, either))
+        return [_less_spill(on + off, lit), own]
+
+    def _shown_before(self, m: int) -> np.ndarray:
+        """(n, n) int8: what each cell showed before frame ``m`` switched it, as far as the
+        reads tell: 1 lit, -1 dark, 0 not known. The ring's cells are known (its black cells
+        stay dark, ``fast`` shows its white ones on even refreshes only); a payload cell is
+        known where it switched in frame ``m - 1`` (``_note_switches``)."""
+        shown = np.zeros((self.n, self.n), np.int8)
+        cells = self._ring_cells
+        lit = self._ring_white & (not self._rises(m))
+        shown[cells[:, 1], cells[:, 0]] = np.where(lit, 1, -1)
+        if self._switched is not None and self._switched[0] == m - 1:
+            shown[1:-1, 1:-1] = self._switched[1]
+        return shown
+
+    def _note_switches(
+        self, m: int, on: np.ndarray, off: np.ndarray, bits: np.ndarray, shown: np.ndarray
+    ) -> None:
+        """Keep which way frame ``m``'s payload cells read as toggled switched: the other way
+        from how they were ``shown``, or where that is not known the polarity they fired more of.
+        Only for one refresh: a display whose fall outlasts the refresh keeps starting OFF
+        bursts in the one after, where a cell that just went dark can only switch on, while a
+        switch misread and carried on would cost a second error at the cell's next switch."""
+        inner = slice(1, -1), slice(1, -1)
+        fired = np.where(on[inner] >= off[inner], 1, -1)
+        before = shown[inner]
+        after = np.where(before != 0, -before, fired)
+        self._switched = (m, np.where(bits > 0, after, 0).astype(np.int8))
 
     def _split(self, density: np.ndarray) -> _Split:
         """The payload of (n, n) densities split against the ring's white and black cells, on
