@@ -350,6 +350,11 @@ def _cell_areas(to_grid: np.ndarray, n: int, margin: float) -> np.ndarray:
     return np.abs(dxu * dyv - dxv * dyu) * (1 - 2 * margin) ** 2
 
 
+_OTHER_FLOOR = 90.0
+"""Percentile of the densities a ``fast`` cell of known state fires in the polarity it cannot
+switch in (late bursts of its last switch, spill), taken as what they reach: above it that
+polarity counts too (``CellReader._levels``)."""
+
 _LEAST_SPILL = 0.02
 """A spill per lit neighbour below this share of the lit cells' contrast is left alone: even
 with all eight neighbours lit it moves a cell by less than the quarter of the contrast that
@@ -849,15 +854,21 @@ class CellReader:
         way: ON where it is ``shown`` dark (-1), OFF where lit (1), and where that is not known
         (0) the stronger of the two. A toggling cell fires the one polarity of its own switch,
         while a dark cell fires with each neighbour in that neighbour's direction: between a
-        rising and a falling one it fires both, which the sum adds up."""
+        rising and a falling one it fires both, which the sum adds up. A known cell's other
+        polarity still counts where it stands out of what the others reach in it
+        (``_OTHER_FLOOR``): a cell whose switch the frame before misread, or read the wrong
+        way, switches the way it was not expected to, at a whole switch's level."""
         lit = self._lit(bits)
         if not self.both_polarities:
             return [_less_spill(on, lit)]
         rose = lit & (on >= off)
         on_level, off_level = _less_spill(on, rose), _less_spill(off, lit & ~rose)
-        either = np.maximum(on_level, off_level)
-        own = np.where(shown < 0, on_level, np.where(shown > 0, off_level, either))
-        return [_less_spill(on + off, lit), own]
+        known = shown != 0
+        own = np.where(shown < 0, on_level, off_level)
+        other = np.where(shown < 0, off_level, on_level)
+        floor = np.percentile(other[known], _OTHER_FLOOR)  # the ring's cells are always known
+        level = np.where(known, np.maximum(own, other - floor), np.maximum(on_level, off_level))
+        return [_less_spill(on + off, lit), level]
 
     def _shown_before(self, m: int) -> np.ndarray:
         """(n, n) int8: what each cell showed before frame ``m`` switched it, as far as the
