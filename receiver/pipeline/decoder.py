@@ -34,8 +34,9 @@ Under hand-held motion five things keep the bits:
   shown on even refreshes only, so its white cells toggle every refresh and read as 1. Blur
   makes a dark cell fire with its switching neighbours, each in its own direction, so a cell
   can read as the stronger of its two polarities (``CellReader._levels``). A cell that switched
-  in the refresh before can only switch back, so it reads in that polarity alone: a display
-  whose fall outlasts the refresh starts some of a fall's OFF bursts in the next one.
+  in the refresh before can only switch back, so it reads in that polarity, the other counting
+  only where it stands out: a display whose fall outlasts the refresh starts some of a fall's
+  OFF bursts in the next one.
 
 The inner locator's known white and black cells give the reference densities and a score that
 says whether the marker is really there; the payload's own two clusters of densities place the
