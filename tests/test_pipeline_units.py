@@ -416,7 +416,8 @@ def test_the_read_gate_opens_row_by_row_down_the_locator():
     for m in range(3):
         reader.clock.observe(m, 100.0 + m * config.frame_us, slope_us=50.0)
     assert reader.gate_opens(3, facing) is None  # the gate is not narrowed yet
-    reader.gate, reader._gate_fitted = (-400.0, 600.0), True
+    reader.gate = (-400.0, 600.0)
+    reader._spans = {1: np.array(reader.gate)}  # the ON bursts' spread, fitted
     a, b, c = reader.gate_opens(3, facing)
     n = geo.locator_side
     for v in (0.5, n / 2, n - 0.5):  # row centres on the grid, then their pixels

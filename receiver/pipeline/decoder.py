@@ -526,7 +526,6 @@ class CellReader:
         self.gate = self._read_gate
         """Burst times (after their row's predicted burst) a cell reads, narrowed to the spread
         of the locator's own bursts of each polarity read (``_narrow_gate``)."""
-        self._gate_fitted = False
         self._spans: dict[int, np.ndarray] = {}
         """The fitted spread of the locator's bursts per polarity (1: ON, -1: OFF)."""
         self._switched: tuple[int, np.ndarray] | None = None
@@ -553,6 +552,11 @@ class CellReader:
         mid = self.clock.mid(m)
         lo, hi = self._gate_now() if self.clock.timed else self._search_gate
         return int(mid - half + lo), int(mid + half + hi) + 1
+
+    @property
+    def _gate_fitted(self) -> bool:
+        """Whether ``gate`` spans the fitted spread of every polarity read."""
+        return len(self._spans) == (1 if self._on_only else 2)
 
     def _gate_now(self) -> tuple[float, float]:
         """The gate whose bursts frames are read from: the narrowed one, but for ``fast`` only
@@ -810,10 +814,9 @@ class CellReader:
         if polarity in self._spans:
             fit = 0.7 * self._spans[polarity] + 0.3 * fit
         self._spans[polarity] = fit
-        if len(self._spans) == (1 if self._on_only else 2):
+        if self._gate_fitted:
             spans = np.array(list(self._spans.values()))
             self.gate = float(spans[:, 0].min()), float(spans[:, 1].max())
-            self._gate_fitted = True
 
     def _classify(self, m: int, density: np.ndarray, pixels: int) -> FrameRead:
         """Bits from the cells' (2, n, n) ON and OFF burst densities, against the ring's white
