@@ -569,9 +569,9 @@ class CellReader:
         two clusters best read (``read``): ``_gate_now``, and for a still ``fast`` grid behind a
         ``sparse`` readout the narrowed gate too. A dense still ``fast`` link read through the
         narrowed gate loses its switches' stragglers. A thinned one's few events per switch
-        stand out of the refresh's stray bursts only inside it on one camera (suite scene 41:
-        a 7 Mev/s cap), while on another its slow switches' late bursts fall outside it (the
-        EVK4 preset at 240 Hz, 5 px per cell: 2.1% of bits wrong, 0.86% through the read gate)."""
+        stand out of the refresh's stray bursts only inside it behind some readouts, while
+        behind others its slow switches' late bursts fall outside it (docs/BENCHMARKS.md's
+        tuning record has the clips)."""
         gate = self._gate_now()
         if self._gate_fitted and self.sparse and gate != self.gate:
             return [gate, self.gate]
