@@ -831,7 +831,7 @@ class CellReader:
         score = (white_ref - black_ref) / max(white_ref + black_ref, 1e-9)
         turns = turn_readings(both, self.config.geometry) / max(float(ring.mean()), 1e-9)
         bits = self._split(both).bits
-        shown = self._shown_before(m)
+        shown = self._shown_before(m) if self.both_polarities else None
         for _ in range(2):  # the second pass fits the spill on the bits the first corrected
             levels = self._levels(on, off, bits, shown)
             split, *others = (self._split(level) for level in levels)
@@ -839,14 +839,14 @@ class CellReader:
                 if other.separation > _APART_MARGIN * split.separation:
                     split = other
             bits = split.bits
-        if self.both_polarities:
+        if shown is not None:
             self._note_switches(m, on, off, bits, shown)
         sure = self.config.decoder.sure_contrast * max(split.white_ref - split.black_ref, 1e-9)
         confidence = np.clip(np.abs(split.payload - split.threshold) / sure, 0.0, 1.0)
         return FrameRead(m, int(self.clock.mid(m)), bits, confidence, score, pixels, turns)
 
     def _levels(
-        self, on: np.ndarray, off: np.ndarray, bits: np.ndarray, shown: np.ndarray
+        self, on: np.ndarray, off: np.ndarray, bits: np.ndarray, shown: np.ndarray | None
     ) -> list[np.ndarray]:
         """(n, n) cell levels less what the neighbours spill into them (``_less_spill``),
         given a first reading ``bits``: one map, or for ``fast`` two, the second taken where it
